@@ -1,0 +1,154 @@
+"""The ``mocaprig`` command line: a thin dispatcher over typed command functions.
+
+Sub-command groups are discovered through the ``mocaprig.commands`` entry points (see
+``pyproject.toml``). Each entry point is ``register(subparsers)``: it adds its parsers and sets
+``func`` to a handler ``(argparse.Namespace) -> int``. Handlers import heavy modules lazily so
+``mocaprig --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from acquire import __version__
+from acquire.errors import MocaprigError
+
+__all__ = ["ProgressBar", "add_json_flag", "emit_json", "main", "to_jsonable"]
+
+_log = logging.getLogger(__name__)
+
+Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
+
+_EPILOG = """\
+examples:
+  mocaprig demo --out demo-out                 simulate, record, calibrate, process; report
+  mocaprig simulate --seconds 5 --out sim      simulated session: truth + Vicon C3D
+  mocaprig vicon info capture.c3d --json       what a C3D or Nexus CSV holds
+
+Run `mocaprig COMMAND --help` for a command's options and examples.
+"""
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Turn numpy scalars/arrays, paths and NaN into plain JSON values (NaN -> null)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def emit_json(obj: Any, *, stream: TextIO | None = None) -> None:
+    """Print ``obj`` as one JSON object on one line of stdout."""
+    out = sys.stdout if stream is None else stream
+    out.write(json.dumps(to_jsonable(obj), sort_keys=False) + "\n")
+    out.flush()
+
+
+def add_json_flag(parser: argparse.ArgumentParser) -> None:
+    """Add the standard ``--json`` flag (one JSON object on stdout)."""
+    parser.add_argument(
+        "--json", action="store_true", help="print one JSON object on stdout instead of text"
+    )
+
+
+class ProgressBar:
+    """A progress callback ``(done, total)`` that draws on stderr.
+
+    It redraws at most every 0.2 s and only when stderr is a terminal, unless ``force`` is set,
+    so logs and CI output stay readable.
+    """
+
+    def __init__(self, label: str, *, stream: TextIO | None = None, force: bool = False) -> None:
+        self._label = label
+        self._stream = sys.stderr if stream is None else stream
+        self._enabled = force or self._stream.isatty()
+        self._last = 0.0
+        self._t0 = time.monotonic()
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self._enabled:
+            return
+        now = time.monotonic()
+        if done < total and now - self._last < 0.2:
+            return
+        self._last = now
+        frac = done / total if total > 0 else 1.0
+        width = 30
+        bar = "#" * round(frac * width)
+        self._stream.write(
+            f"\r{self._label} [{bar:<{width}}] {done}/{total} {now - self._t0:5.1f}s"
+        )
+        if done >= total:
+            self._stream.write("\n")
+        self._stream.flush()
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mocaprig",
+        description="Acquire, calibrate and process a DAVIS240C + RealSense D415 + Vicon rig.",
+        epilog=_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"mocaprig {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    eps = sorted(entry_points(group="mocaprig.commands"), key=lambda e: e.name)
+    if not eps:
+        _log.warning(
+            "no mocaprig commands are registered; reinstall the package (pip install -e .)"
+        )
+    for ep in eps:
+        try:
+            register: Register = ep.load()
+        except Exception:
+            # One broken command group must not take the others down; say which and why.
+            _log.exception("cannot load the '%s' commands (%s)", ep.name, ep.value)
+            continue
+        register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI; return the process exit code (0 ok, 1 error, 2 usage)."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
+    if func is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return func(args)
+    except MocaprigError as err:
+        print(f"ERROR: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Vicon I/O, marker measurement, time alignment, registration and intrinsics."""

@@ -1,0 +1,1 @@
+"""Body model, capture methods (DeMoCap, EventCap), metrics and exporters."""

@@ -1,0 +1,1 @@
+"""The body model: skeleton, kinematics, shape, surface and marker set."""
