@@ -3,3 +3,56 @@
 Mocks emulate devices from their specifications (``../shared/docs``), not from the drivers'
 constants. Nothing in ``acquire``, ``calib`` or ``process`` imports this package.
 """
+
+from __future__ import annotations
+
+from drivers_mock.clapperboard import CLAPPER_MARKERS, Clapperboard, make_clapperboard
+from drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from drivers_mock.noise import NoiseSettings
+from drivers_mock.rig import (
+    D415Spec,
+    DavisSpec,
+    PinholeCamera,
+    Rig,
+    ViconSpec,
+    default_rig,
+    look_at,
+    project,
+)
+from drivers_mock.scenario import SCENARIOS, Scenario, WorldSample, build_scenario
+from drivers_mock.session import SimulationResult, simulate_session
+from drivers_mock.truth import Truth, ViconTruth, read_truth, write_truth
+from drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d, write_nexus_csv
+
+__all__ = [
+    "CLAPPER_MARKERS",
+    "SCENARIOS",
+    "Clapperboard",
+    "D415Spec",
+    "DavisSpec",
+    "DeviceClock",
+    "NoiseSettings",
+    "PinholeCamera",
+    "Rig",
+    "Scenario",
+    "SimulationResult",
+    "Truth",
+    "ViconCapture",
+    "ViconSpec",
+    "ViconTruth",
+    "WorldSample",
+    "build_scenario",
+    "d415_clock",
+    "davis_clock",
+    "default_rig",
+    "look_at",
+    "make_clapperboard",
+    "project",
+    "read_truth",
+    "simulate_session",
+    "simulate_vicon",
+    "vicon_clock",
+    "write_c3d",
+    "write_nexus_csv",
+    "write_truth",
+]

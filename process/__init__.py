@@ -1,1 +1,8 @@
-"""Body model, capture methods (DeMoCap, EventCap), metrics and exporters."""
+"""Body model, capture methods (DeMoCap, EventCap), metrics and exporters.
+
+Imports flow one way: ``process -> calib -> acquire``. Subpackages: :mod:`process.body`.
+"""
+
+from __future__ import annotations
+
+__all__: list[str] = []

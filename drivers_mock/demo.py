@@ -1,0 +1,273 @@
+"""The main job on the simulated rig: ``mocaprig demo``.
+
+It runs the whole toolkit as far as it exists and reports its figures against ground truth.
+Today: simulate a session (truth + Vicon C3D/CSV) -> read the Vicon exports back through the
+product reader (:mod:`calib.vicon`) -> compare with the truth -> a summary figure and report.
+Stages that later issues add (recording through the real drivers, calibration, DeMoCap,
+EventCap) are listed in the report as not available yet, never faked.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acquire import __version__
+from acquire.cli import to_jsonable
+from acquire.errors import RecordingError
+from calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
+from drivers_mock.session import SimulationResult, simulate_session
+from drivers_mock.truth import Truth, read_truth
+
+__all__ = ["DemoReport", "run_demo"]
+
+_log = logging.getLogger(__name__)
+
+Progress = Callable[[int, int], None]
+
+#: Stages of the main job that later issues add; the report lists them as pending.
+_PENDING_STAGES: tuple[tuple[str, str], ...] = (
+    ("record", "session recording through the real drivers talking to mock devices (issue 5)"),
+    ("calibrate", "clapperboard time alignment, ICP + matching + bundle adjustment (issue 6)"),
+    ("democap", "DeMoCap markers -> pose on the D415 rig (issue 7)"),
+    ("eventcap", "EventCap 3D motion at 1000 fps from the DAVIS (issue 8)"),
+)
+
+
+@dataclass(frozen=True, slots=True)
+class DemoReport:
+    """What :func:`run_demo` produced and measured.
+
+    Attributes:
+        out_dir: The demo folder.
+        session_dir: The simulated session (truth + Vicon exports).
+        figure_path: The summary figure (PNG).
+        report_path: ``report.json`` (this report).
+        figures: Measured figures (units in the key names).
+        stages: Each stage of the main job with ``"done"`` or ``"pending: <why>"``.
+    """
+
+    out_dir: Path
+    session_dir: Path
+    figure_path: Path
+    report_path: Path
+    figures: dict[str, Any] = field(repr=False)
+    stages: dict[str, str] = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready summary (what ``demo --json`` prints)."""
+        return {
+            "out_dir": str(self.out_dir),
+            "session_dir": str(self.session_dir),
+            "figure": str(self.figure_path),
+            "report": str(self.report_path),
+            "stages": dict(self.stages),
+            "figures": dict(self.figures),
+        }
+
+
+def _vicon_vs_truth(traj: MarkerTrajectories, truth: Truth) -> dict[str, float]:
+    """Error of the C3D read back by the product reader against the clean frame truth."""
+    if truth.vicon is None:
+        msg = f"the truth in {truth.meta.get('path', '?')} has no Vicon frame truth"
+        raise RecordingError(msg)
+    clean = truth.vicon.clean_m
+    labels = [lab.split(":", 1)[-1] for lab in truth.vicon.labels]
+    idx = [traj.index(lab) for lab in labels]
+    measured = traj.positions_m[:, idx, :]
+    if measured.shape != clean.shape:
+        msg = (
+            f"the C3D read back has shape {measured.shape} but the Vicon truth has "
+            f"{clean.shape}; the reader and the mock writer disagree"
+        )
+        raise RecordingError(msg)
+    err = measured - clean
+    ok = np.all(np.isfinite(err), axis=-1)
+    err_ok = err[ok]
+    return {
+        "vicon_error_rms_mm_per_axis": float(np.sqrt(np.mean(err_ok**2)) * 1e3),
+        "vicon_error_p99_mm": float(np.percentile(np.linalg.norm(err_ok, axis=-1), 99) * 1e3),
+        "vicon_error_max_mm": float(np.max(np.linalg.norm(err_ok, axis=-1)) * 1e3),
+        "vicon_gap_fraction": float(1.0 - ok.mean()),
+    }
+
+
+def _summary_figure(
+    path: Path, sim: SimulationResult, truth: Truth, traj: MarkerTrajectories
+) -> None:
+    import matplotlib as mpl
+
+    mpl.use("Agg", force=False)  # no display on a capture PC's CI or over ssh
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13, 9), layout="constrained")
+    axes = fig.subplots(2, 2)
+    world = sim.scenario
+    t_s = truth.t_ns * 1e-9
+
+    # (a) the rig from above: cameras, their view direction, the actor's markers
+    ax = axes[0, 0]
+    mid = len(truth.t_ns) // 2
+    mk = truth.markers_m[mid]
+    ax.scatter(mk[:, 0], mk[:, 1], s=6, c="tab:gray", label="body markers")
+    cl = truth.clapper_m[mid]
+    ax.scatter(cl[:, 0], cl[:, 1], s=20, c="tab:red", marker="x", label="clapperboard")
+    for name, cam in world.rig.cameras.items():
+        c = cam.center_m
+        look = cam.T_world_cam[:3, 2]
+        colour = "tab:purple" if "davis" in name else "tab:blue"
+        ax.plot(c[0], c[1], "o", color=colour)
+        ax.arrow(c[0], c[1], 0.6 * look[0], 0.6 * look[1], width=0.02, color=colour)
+        ax.annotate(name, (c[0], c[1]), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("rig from above (D415 blue, DAVIS purple)")
+    ax.legend(loc="best", fontsize=8)
+
+    # (b) joint heights over time: the motion
+    ax = axes[0, 1]
+    for name in ("HeadEnd", "RightHand", "LeftHand", "RightFoot", "LeftFoot"):
+        j = truth.joint_names.index(name)
+        ax.plot(t_s, truth.joints_m[:, j, 2], label=name, lw=1)
+    for tc in truth.clap_times_ns:
+        ax.axvline(tc * 1e-9, color="tab:red", ls="--", lw=0.8)
+    ax.set_xlabel("session time (s)")
+    ax.set_ylabel("height (m)")
+    ax.set_title(f"motion '{world.motion_source}' (claps dashed)")
+    ax.legend(fontsize=8, ncol=2)
+
+    # (c) clapperboard marker distance: truth vs the Vicon C3D read back
+    ax = axes[1, 0]
+    d_true = np.linalg.norm(truth.clapper_m[:, 0] - truth.clapper_m[:, 1], axis=-1)
+    ax.plot(t_s, d_true * 1e3, label="truth", lw=1)
+    if truth.vicon is not None:
+        top, bottom = (traj.marker(f"clapper:{n}") for n in truth.clapper_marker_names)
+        ax.plot(
+            truth.vicon.frame_t_ns * 1e-9,
+            np.linalg.norm(top - bottom, axis=-1) * 1e3,
+            ".",
+            ms=2,
+            label="Vicon C3D (read back)",
+        )
+    ax.set_xlabel("session time (s)")
+    ax.set_ylabel("marker distance (mm)")
+    ax.set_title("clapperboard")
+    ax.legend(fontsize=8)
+
+    # (d) Vicon error histogram
+    ax = axes[1, 1]
+    if truth.vicon is not None:
+        labels = [lab.split(":", 1)[-1] for lab in truth.vicon.labels]
+        meas = traj.positions_m[:, [traj.index(lab) for lab in labels], :]
+        err = (meas - truth.vicon.clean_m).reshape(-1)
+        err = err[np.isfinite(err)] * 1e3
+        ax.hist(err, bins=80, color="tab:green")
+        sigma = world.rig.vicon.noise_sigma_m * world.noise.vicon_noise_scale * 1e3
+        ax.set_title(f"Vicon C3D - truth per axis (σ set to {sigma:.2f} mm)")
+    ax.set_xlabel("error (mm)")
+    ax.set_ylabel("samples")
+    fig.suptitle(
+        f"mocaprig demo: scenario '{world.name}', seed {world.seed}, {world.seconds:g} s"
+    )
+    fig.savefig(path, dpi=90)
+
+
+def run_demo(
+    out_dir: str | Path,
+    *,
+    scenario: str = "default",
+    seed: int = 0,
+    seconds: float = 10.0,
+    overwrite: bool = False,
+    progress: Callable[[str], Progress | None] | None = None,
+) -> DemoReport:
+    """Run the main job on the simulated rig and write ``report.json`` and ``summary.png``.
+
+    Args:
+        out_dir: The demo folder (must be empty unless ``overwrite``).
+        scenario: A simulated scenario name (``mocaprig simulate --help`` lists them).
+        seed: World seed.
+        seconds: Session length (s).
+        overwrite: Replace the outputs of an earlier demo in ``out_dir``.
+        progress: Optional factory ``stage label -> (done, total)`` callback.
+
+    Raises:
+        RecordingError: the folder is not empty (without ``overwrite``) or a file disagrees.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        msg = f"demo output {out} exists and is not a folder; choose another --out"
+        raise RecordingError(msg)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        msg = f"demo folder {out} is not empty; choose another --out or pass --overwrite"
+        raise RecordingError(msg)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    t0 = time.monotonic()
+    sim = simulate_session(
+        out / "session",
+        scenario=scenario,
+        seed=seed,
+        seconds=seconds,
+        overwrite=True,
+        progress=progress,
+    )
+    timings["simulate_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    traj = read_c3d(sim.c3d_path, strip_subject_prefix=False)
+    timings["read_c3d_s"] = time.monotonic() - t0
+    csv = read_nexus_csv(sim.csv_path)
+    truth = read_truth(sim.out_dir)
+
+    figures: dict[str, Any] = {
+        "seconds": sim.seconds,
+        "seed": sim.seed,
+        "scenario": sim.scenario.name,
+        "motion": sim.scenario.motion_source,
+        "body_markers": sim.num_body_markers,
+        "clapper_markers": sim.num_clapper_markers,
+        "vicon_rate_hz": traj.rate_hz,
+        "vicon_frames": traj.n_frames,
+        "vicon_extent_m": traj.extent_m,
+        "clap_times_s": [t * 1e-9 for t in sim.clap_times_ns],
+        "vicon_noise_sigma_set_mm": sim.scenario.rig.vicon.noise_sigma_m
+        * sim.scenario.noise.vicon_noise_scale
+        * 1e3,
+    }
+    figures.update(_vicon_vs_truth(traj, truth))
+    both = np.isfinite(csv.positions_m) & np.isfinite(traj.positions_m)
+    gaps_agree = bool(np.array_equal(np.isfinite(csv.positions_m), np.isfinite(traj.positions_m)))
+    figures["csv_vs_c3d_max_abs_mm"] = float(
+        np.max(np.abs(csv.positions_m[both] - traj.positions_m[both])) * 1e3
+    )
+    figures["csv_vs_c3d_gaps_agree"] = gaps_agree
+    figures["timings_s"] = timings
+
+    figure_path = out / "summary.png"
+    _summary_figure(figure_path, sim, truth, traj)
+
+    stages = {"simulate": "done", "vicon_io": "done"}
+    stages.update({name: f"pending: {why}" for name, why in _PENDING_STAGES})
+    report_path = out / "report.json"
+    report = DemoReport(
+        out_dir=out,
+        session_dir=sim.out_dir,
+        figure_path=figure_path,
+        report_path=report_path,
+        figures=figures,
+        stages=stages,
+    )
+    payload = {"mocaprig_version": __version__, **report.to_dict()}
+    report_path.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")
+    _log.info("demo report written to %s", report_path)
+    return report

@@ -1,0 +1,44 @@
+"""The dispatcher: help, version, usage errors and error reporting."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from acquire.cli import ProgressBar, emit_json, main, to_jsonable
+
+
+def test_help_lists_the_commands_and_examples(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "examples:" in out
+    for command in ("simulate", "vicon"):
+        assert command in out
+
+
+def test_no_command_prints_usage_and_returns_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 2
+    assert "usage: mocaprig" in capsys.readouterr().err
+
+
+def test_to_jsonable_turns_numpy_and_nan_into_plain_json() -> None:
+    obj = {"a": np.float32(1.5), "b": np.arange(3), "c": float("nan"), "d": (np.int64(2),)}
+    assert to_jsonable(obj) == {"a": 1.5, "b": [0, 1, 2], "c": None, "d": [2]}
+
+
+def test_emit_json_writes_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    emit_json({"x": np.float64(2.0)})
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1
+    assert json.loads(out) == {"x": 2.0}
+
+
+def test_progress_bar_is_silent_when_not_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    bar = ProgressBar("work")
+    bar(1, 2)
+    bar(2, 2)
+    assert capsys.readouterr().err == ""
