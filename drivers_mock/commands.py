@@ -149,13 +149,20 @@ def _demo(args: argparse.Namespace) -> int:
         "stages:",
         *(f"  {name:<9} {state}" for name, state in report.stages.items()),
         "figures:",
-        f"  Vicon C3D: {f['body_markers']} body + {f['clapper_markers']} clapperboard markers, "
-        f"{f['vicon_frames']} frames at {f['vicon_rate_hz']:g} Hz",
-        f"  Vicon C3D read back vs truth: {f['vicon_error_rms_mm_per_axis']:.3f} mm RMS per axis "
-        f"(noise set to {f['vicon_noise_sigma_set_mm']:.2f} mm), "
-        f"{100 * f['vicon_gap_fraction']:.2f} % gaps",
-        f"  Nexus CSV vs C3D: max {f['csv_vs_c3d_max_abs_mm']:.4f} mm, "
-        f"gaps agree: {f['csv_vs_c3d_gaps_agree']}",
+        (
+            f"  Vicon C3D: {f['body_markers']} body + {f['clapper_markers']} clapperboard markers, "
+            f"{f['vicon_frames']} frames at {f['vicon_rate_hz']:g} Hz"
+        ),
+        (
+            f"  Vicon C3D read back vs truth: {f['vicon_error_rms_mm_per_axis']:.3f} mm RMS "
+            "per axis "
+            f"(noise set to {f['vicon_noise_sigma_set_mm']:.2f} mm), "
+            f"{100 * f['vicon_gap_fraction']:.2f} % gaps"
+        ),
+        (
+            f"  Nexus CSV vs C3D: max {f['csv_vs_c3d_max_abs_mm']:.4f} mm, "
+            f"gaps agree: {f['csv_vs_c3d_gaps_agree']}"
+        ),
         "  claps at: " + ", ".join(f"{t:.3f} s" for t in f["clap_times_s"]),
         "outputs:",
         f"  session (truth + Vicon C3D/CSV): {report.session_dir}",

@@ -174,9 +174,7 @@ def _summary_figure(
         ax.set_title(f"Vicon C3D - truth per axis (σ set to {sigma:.2f} mm)")
     ax.set_xlabel("error (mm)")
     ax.set_ylabel("samples")
-    fig.suptitle(
-        f"mocaprig demo: scenario '{world.name}', seed {world.seed}, {world.seconds:g} s"
-    )
+    fig.suptitle(f"mocaprig demo: scenario '{world.name}', seed {world.seed}, {world.seconds:g} s")
     fig.savefig(path, dpi=90)
 
 

@@ -792,7 +792,8 @@ def retarget_bvh(
        (forearm pronation). The root rotation starts from the hips line and the spine.
     3. The root translation is the BVH hips position times the leg-length ratio (ours / BVH);
        with ``ground`` the whole clip is then shifted vertically so that the lowest sole
-       point touches the floor in the median frame.
+       point touches the floor in the median frame, and frames that would still put a sole
+       point below the floor have their root raised until it touches.
 
     Args:
         clip: The BVH clip.
@@ -892,8 +893,13 @@ def retarget_bvh(
         from process.body.kinematics import forward_kinematics
         from process.body.procedural import floor_clearance_m
 
-        kin = forward_kinematics(poses, shape)
-        poses[:, 5] -= float(np.median(floor_clearance_m(kin, shape)))
+        clearance = floor_clearance_m(forward_kinematics(poses, shape), shape)
+        poses[:, 5] -= float(np.median(clearance))
+        # Our legs cannot always fold like the source's (ankle dorsiflexion stops at 20 deg,
+        # toes are rigid), so in deep crouches the scaled source root would sink a foot into
+        # the floor; raise the root in just those frames so the sole only touches it.
+        below = clearance - float(np.median(clearance))
+        poses[:, 5] += np.maximum(-below, 0.0)
     _log.info(
         "retargeted %s: %d frames, %d direction cues, leg ratio %.3f, %d L-BFGS evaluations "
         "in %.2f s",

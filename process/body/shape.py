@@ -38,6 +38,7 @@ from process.body.skeleton import JOINT_INDEX, JOINTS, PARENTS
 
 __all__ = [
     "DRILLIS_CONTINI_FRACTIONS",
+    "HEEL_FRACTION",
     "LENGTH_FIELDS",
     "RADIUS_FIELDS",
     "VERTICAL_CHAIN",

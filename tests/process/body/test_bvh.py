@@ -348,6 +348,9 @@ def test_cmu_131_01_retargets_within_measured_error(shared_data: Path) -> None:
     assert report.bone_angle_error_deg < 10.0
     assert report.mpjpe_bone_normalised_m < 0.07
     kin = forward_kinematics(motion.poses, shape)
-    assert abs(float(np.median(floor_clearance_m(kin, shape)))) < 1e-6
+    clearance = floor_clearance_m(kin, shape)
+    assert abs(float(np.median(clearance))) < 1e-3  # lifted crouch frames move it slightly
+    # the clip crouches deeper than our ankles allow; no sole may sink through the floor
+    assert clearance.min() > -1e-9
     # upright: the pelvis' up axis (body +Z) points up (the subject leans up to ~40 deg)
     assert np.all(kin.rotations[:, 0, 2, 2] > 0.6)
