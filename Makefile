@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/mocaprig demo --out $(DEMO_OUT)
+	$(VENV)/bin/mocaprig demo --out $(DEMO_OUT) --overwrite
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
