@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from drivers_mock.clapperboard import CLAPPER_MARKERS, Clapperboard, make_clapperboard
 from drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from drivers_mock.d415 import MockD415, MockD415Rig, mock_cameras
+from drivers_mock.davis240c_sim import DavisSimulator, simulate_davis
+from drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, mock_backend
 from drivers_mock.noise import NoiseSettings
 from drivers_mock.rig import (
     D415Spec,
@@ -21,6 +24,7 @@ from drivers_mock.rig import (
 )
 from drivers_mock.scenario import SCENARIOS, Scenario, WorldSample, build_scenario
 from drivers_mock.session import SimulationResult, simulate_session
+from drivers_mock.syncbox import MockSyncBox, mock_syncbox
 from drivers_mock.truth import Truth, ViconTruth, read_truth, write_truth
 from drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d, write_nexus_csv
 
@@ -29,8 +33,14 @@ __all__ = [
     "SCENARIOS",
     "Clapperboard",
     "D415Spec",
+    "Davis240CBackend",
+    "DavisFaults",
+    "DavisSimulator",
     "DavisSpec",
     "DeviceClock",
+    "MockD415",
+    "MockD415Rig",
+    "MockSyncBox",
     "NoiseSettings",
     "PinholeCamera",
     "Rig",
@@ -47,8 +57,12 @@ __all__ = [
     "default_rig",
     "look_at",
     "make_clapperboard",
+    "mock_backend",
+    "mock_cameras",
+    "mock_syncbox",
     "project",
     "read_truth",
+    "simulate_davis",
     "simulate_session",
     "simulate_vicon",
     "vicon_clock",

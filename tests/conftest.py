@@ -15,3 +15,13 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is absent (only the project's CI has it)")
     return SHARED_DATA
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    """``--hardware``: also run device-contract tests against real devices on this machine."""
+    parser.addoption(
+        "--hardware",
+        action="store_true",
+        default=False,
+        help="run the device-contract tests against real hardware too (DAVIS240C on USB)",
+    )

@@ -1,0 +1,958 @@
+"""``mocaprig record | info | recover | export | import-events``: the recording commands.
+
+Each ``register_*`` function is a ``mocaprig.commands`` entry point; each command is a typed
+function returning an exit code. Device modules are imported lazily.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Literal, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from acquire.cli import add_json_flag, emit_json
+from acquire.errors import RecordingError, ValidationError
+from acquire.recorder import Attachment, Recorder, StreamSource, record_sources, stop_on_signals
+from acquire.recording_format import (
+    CameraCalibrationMsg,
+    D415FrameInfo,
+    DavisFrameInfo,
+    EventPacket,
+    ImageMsg,
+    ImuPacket,
+    RecorderStatus,
+    SyncPulses,
+    TriggerPacket,
+    split_events,
+    topic,
+)
+
+__all__ = [
+    "DavisSource",
+    "DepthCameraSource",
+    "SyncBoxSource",
+    "export",
+    "export_events_txt",
+    "import_events",
+    "read_events_txt",
+    "record",
+    "recording_info",
+    "recover_command",
+    "register_export",
+    "register_import_events",
+    "register_info",
+    "register_record",
+    "register_recover",
+]
+
+_log = logging.getLogger(__name__)
+
+ExportFormat = Literal["npz", "txt", "png", "mp4"]
+_Sub = "argparse._SubParsersAction[argparse.ArgumentParser]"
+
+
+# -------------------------------------------------------------------------------------------
+# Sources: real drivers (or their mocks) -> recorder
+
+
+class DavisSource:
+    """A DAVIS240C (:class:`acquire.davis240c.Davis240C`, opened) as a :class:`StreamSource`.
+
+    Topics: ``/davis/<serial>/{events,frame,frame_info,imu,trigger}``.
+    """
+
+    def __init__(self, cam: Any, *, events_per_packet_max: int = 200_000) -> None:
+        self.cam = cam
+        self.serial: str = cam.serial
+        self.name = f"davis/{self.serial}"
+        self.frame_id = f"davis_{self.serial}"
+        self._max = events_per_packet_max
+        info = cam.info
+        self.width: int = int(info.dvs_size_x)
+        self.height: int = int(info.dvs_size_y)
+        self.metadata: dict[str, dict[str, str]] = {
+            f"device/{self.name}": {k: str(v) for k, v in info.as_dict().items()},
+            f"settings/{self.name}": _davis_settings(cam),
+        }
+        self._h: dict[str, Any] = {}
+
+    def declare(self, recorder: Recorder) -> None:
+        meta = {"serial": self.serial, "device": "DAVIS240C", "frame_id": self.frame_id}
+        for stream, cls, kw in (
+            ("events", EventPacket, {}),
+            ("frame", ImageMsg, {"queue_messages": 256}),
+            ("frame_info", DavisFrameInfo, {}),
+            ("imu", ImuPacket, {}),
+            ("trigger", TriggerPacket, {}),
+        ):
+            self._h[stream] = recorder.add_stream(
+                topic("davis", self.serial, stream), cls, metadata=meta, **kw
+            )
+
+    def run(self, recorder: Recorder, stop: threading.Event) -> None:
+        cam = self.cam
+        cam.start()
+        seq = {"events": 0, "frame": 0, "imu": 0, "trigger": 0}
+        h = self._h
+        try:
+            while not stop.is_set():
+                pkt = cam.get_packet(timeout_s=0.1)
+                if pkt is None:
+                    continue
+                t = pkt.host_time_ns or None
+                if pkt.events.size:
+                    for ev in _chunks(pkt.events, self._max):
+                        for part in split_events(ev):
+                            p = EventPacket(
+                                part, self.width, self.height, seq["events"], self.frame_id
+                            )
+                            recorder.put(h["events"], p, log_time_ns=t, sequence=seq["events"])
+                            seq["events"] += 1
+                for fr in pkt.frames:
+                    n = seq["frame"]
+                    img = ImageMsg(fr.pixels_16bit, "mono16", fr.t_us * 1000, self.frame_id)
+                    recorder.put(h["frame"], img, log_time_ns=t, sequence=n)
+                    fi = DavisFrameInfo(
+                        n,
+                        fr.t_start_frame_us,
+                        fr.t_end_frame_us,
+                        fr.t_start_exposure_us,
+                        fr.t_end_exposure_us,
+                        fr.exposure_cycles,
+                        fr.position_x,
+                        fr.position_y,
+                        fr.global_shutter,
+                        self.frame_id,
+                    )
+                    recorder.put(h["frame_info"], fi, log_time_ns=t, sequence=n)
+                    seq["frame"] += 1
+                if pkt.imu.size:
+                    imu = ImuPacket(pkt.imu, seq["imu"], self.frame_id)
+                    recorder.put(h["imu"], imu, log_time_ns=t, sequence=seq["imu"])
+                    seq["imu"] += 1
+                if pkt.specials.size:
+                    tr = TriggerPacket(pkt.specials, seq["trigger"], self.frame_id)
+                    recorder.put(h["trigger"], tr, log_time_ns=t, sequence=seq["trigger"])
+                    seq["trigger"] += 1
+        finally:
+            cam.stop()
+            stats = cam.stats()
+            recorder.log(
+                "INFO",
+                f"DAVIS {self.serial} driver counters: packets dropped {stats.packets_dropped}, "
+                f"events dropped {stats.events_dropped}, raw bytes dropped "
+                f"{stats.raw_bytes_dropped}",
+                name=self.name,
+            )
+
+
+def _davis_settings(cam: Any) -> dict[str, str]:
+    """Biases and module settings as written to the camera (strings, for MCAP metadata)."""
+    settings = cam.settings
+    out = {f"bias.{getattr(k, 'name', k)}": str(v) for k, v in settings.biases.items()}
+    for section in ("aps", "imu", "ext_input"):
+        value = getattr(settings, section, None)
+        if value is not None and dataclasses.is_dataclass(value):
+            for f in dataclasses.fields(value):
+                out[f"{section}.{f.name}"] = str(getattr(value, f.name))
+    out["early_packet_delay_125us"] = str(settings.early_packet_delay_125us)
+    return out
+
+
+def _chunks(arr: npt.NDArray[Any], n: int) -> list[npt.NDArray[Any]]:
+    return [arr[i : i + n] for i in range(0, arr.size, n)] if arr.size > n else [arr]
+
+
+class DepthCameraSource:
+    """A D415 (:class:`acquire.depth_camera.DepthCamera`, configured) as a stream source.
+
+    Topics: ``/d415/<serial>/{ir,depth,frame_info,camera_info}``; ``camera_info`` is written
+    once at start (and is the same for IR and depth on a D415).
+    """
+
+    def __init__(self, cam: Any, *, stream: Any = None, options: Any = None) -> None:
+        """``stream``/``options``: the StreamConfig and SensorOptions the camera was configured
+        with, stored in its metadata record (mode, exposure, gain, laser power)."""
+        self.cam = cam
+        cinfo = cam.info
+        self.serial: str = cinfo.serial
+        self.name = f"d415/{self.serial}"
+        self.frame_id = f"d415_{self.serial}"
+        self.metadata: dict[str, dict[str, str]] = {
+            f"device/{self.name}": {
+                "serial": cinfo.serial,
+                "name": cinfo.name,
+                "firmware": cinfo.firmware,
+                "usb_type": cinfo.usb_type,
+                "sync_mode": str(int(cam.sync_mode)),
+                "depth_scale_m": repr(float(cam.depth_scale_m)),
+            }
+        }
+        for prefix, value in (("stream", stream), ("options", options)):
+            if value is not None and dataclasses.is_dataclass(value):
+                for f in dataclasses.fields(value):
+                    self.metadata[f"device/{self.name}"][f"{prefix}.{f.name}"] = str(
+                        getattr(value, f.name)
+                    )
+        self._h: dict[str, Any] = {}
+
+    def declare(self, recorder: Recorder) -> None:
+        meta = {"serial": self.serial, "device": "D415", "frame_id": self.frame_id}
+        for stream, cls, q in (
+            ("ir", ImageMsg, 64),
+            ("depth", ImageMsg, 64),
+            ("frame_info", D415FrameInfo, 1024),
+            ("camera_info", CameraCalibrationMsg, 16),
+        ):
+            self._h[stream] = recorder.add_stream(
+                topic("d415", self.serial, stream), cls, metadata=meta, queue_messages=q
+            )
+
+    def run(self, recorder: Recorder, stop: threading.Event) -> None:
+        cam, h = self.cam, self._h
+        cam.start()
+        try:
+            k = cam.intrinsics()
+            calib = CameraCalibrationMsg(
+                int(k.width),
+                int(k.height),
+                (k.fx, 0.0, k.ppx, 0.0, k.fy, k.ppy, 0.0, 0.0, 1.0),
+                tuple(float(c) for c in getattr(k, "coeffs", ())),
+                "plumb_bob",
+                self.frame_id,
+            )
+            recorder.put(h["camera_info"], calib)
+            while not stop.is_set():
+                fs = cam.poll(0.1)
+                if fs is None:
+                    continue
+                tm = fs.timing
+                n = int(tm.frame_counter)
+                stamp = (
+                    tm.sensor_timestamp_us * 1000
+                    if tm.sensor_timestamp_us is not None
+                    else tm.host_time_ns
+                )
+                # log_time: the recorder's host clock at receive (the camera's host_time_ns is
+                # monotonic, or simulated in a mock; it is kept in frame_info).
+                t = recorder.clock_ns()
+                ir = ImageMsg(fs.infrared.image, "mono8", stamp, self.frame_id)
+                depth = ImageMsg(fs.depth.image, "16UC1", stamp, self.frame_id)
+                recorder.put(h["ir"], ir, log_time_ns=t, sequence=n)
+                recorder.put(h["depth"], depth, log_time_ns=t, sequence=n)
+                info = D415FrameInfo(
+                    n,
+                    tm.sensor_timestamp_us,
+                    tm.frame_timestamp_us,
+                    tm.time_of_arrival_ms,
+                    str(tm.timestamp_domain.name),
+                    float(tm.timestamp_ms),
+                    int(tm.host_time_ns),
+                    float(fs.depth_scale_m),
+                    self.frame_id,
+                )
+                recorder.put(h["frame_info"], info, log_time_ns=t, sequence=n)
+        finally:
+            cam.stop()
+
+
+class SyncBoxSource:
+    """A sync box (:class:`acquire.syncbox.SyncBox`, opened) as a stream source.
+
+    Topic ``/syncbox/pulses``: one message per ``PULSES`` report. ``mode`` ``listen`` counts
+    the D415 master's pulses; ``generate`` drives the trigger at ``hz``.
+    """
+
+    def __init__(
+        self,
+        box: Any,
+        *,
+        mode: Literal["listen", "generate"] = "listen",
+        hz: int = 30,
+        width_us: int = 100,
+        report_interval_ms: int = 200,
+    ) -> None:
+        self.box = box
+        self.name = "syncbox"
+        self.mode = mode
+        self.hz = hz
+        self.width_us = width_us
+        self.report_interval_ms = report_interval_ms
+        ident = box.identity
+        self.metadata: dict[str, dict[str, str]] = {
+            "device/syncbox": {
+                "port": str(box.port),
+                "protocol_version": str(getattr(ident, "version", "")),
+                "board": str(getattr(ident, "board", "")),
+                "mode": mode,
+                "hz": str(hz) if mode == "generate" else "",
+                "width_us": str(width_us) if mode == "generate" else "",
+                "report_interval_ms": str(report_interval_ms),
+            }
+        }
+        self._h: Any = None
+
+    def declare(self, recorder: Recorder) -> None:
+        self._h = recorder.add_stream(
+            topic("syncbox", "", "pulses"), SyncPulses, metadata={"device": "syncbox"}
+        )
+
+    def run(self, recorder: Recorder, stop: threading.Event) -> None:
+        box = self.box
+        box.set_report_interval(self.report_interval_ms)
+        if self.mode == "generate":
+            box.start(hz=self.hz, width_us=self.width_us)
+        else:
+            box.listen()
+        mode = self.mode.upper() if self.mode == "listen" else "GENERATE"
+        n = 0
+        try:
+            while not stop.is_set():
+                for rep in box.read_reports(0.1):
+                    msg = SyncPulses(
+                        rep.count, rep.t_us, mode, "syncbox", rep.total, rep.host_time_ns
+                    )
+                    recorder.put(self._h, msg, sequence=n)
+                    n += 1
+        finally:
+            count = box.stop()
+            recorder.log("INFO", f"sync box run ended with {count} pulses", name=self.name)
+
+
+# -------------------------------------------------------------------------------------------
+# record
+
+
+class _StatusLine:
+    """Live status on stderr (terminal only): per-stream rate and drops, MB/s, free disk."""
+
+    def __init__(self, stream: TextIO | None = None) -> None:
+        self._out = sys.stderr if stream is None else stream
+        self._on = self._out.isatty()
+        self._last: tuple[float, RecorderStatus] | None = None
+
+    def __call__(self, st: RecorderStatus) -> None:
+        now = time.monotonic()
+        prev = self._last
+        self._last = (now, st)
+        if not self._on or prev is None:
+            return
+        dt = max(now - prev[0], 1e-6)
+        before = {s.topic: s.written for s in prev[1].streams}
+        parts = []
+        for s in st.streams:
+            if s.topic in ("/diagnostics", "/log"):
+                continue
+            rate = (s.written - before.get(s.topic, 0)) / dt
+            short = s.topic.rsplit("/", 2)
+            parts.append(f"{short[-2]}/{short[-1]} {rate:.0f}/s d{s.dropped}")
+        mbps = (st.bytes_written - prev[1].bytes_written) / dt / 1e6
+        line = (
+            f"{st.elapsed_ns / 1e9:6.1f}s {mbps:6.1f} MB/s free {st.free_disk_bytes / 1e9:.1f} GB "
+            f"drops {st.dropped_total} | " + "  ".join(parts)
+        )
+        self._out.write("\r" + line[:200].ljust(200))
+        self._out.flush()
+
+    def done(self) -> None:
+        if self._on:
+            self._out.write("\n")
+            self._out.flush()
+
+
+def _mock_sources(
+    *,
+    scenario: str,
+    seed: int,
+    seconds: float,
+    cameras: int,
+    syncbox: bool,
+    stack: list[tuple[str, Any]],
+) -> list[StreamSource]:
+    from acquire.davis240c import Davis240C, load_mock_backend
+    from acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+
+    sources: list[StreamSource] = []
+    # "asap": the DAVIS simulator cannot render in real time on a small machine.
+    backend = load_mock_backend(scenario=scenario, seed=seed, pacing="asap")
+    cam = Davis240C.open(backend=backend)
+    stack.append(("davis/" + cam.serial, cam))
+    sources.append(DavisSource(cam))
+    if cameras > 0:
+        d415s = open_cameras(
+            "mock", scenario=scenario, seed=seed, count=cameras, pacing="realtime",
+            seconds=seconds + 5.0,
+        )  # fmt: skip
+        for i, d in enumerate(d415s):
+            stack.append(("d415/" + d.info.serial, d))
+            mode, opts = StreamConfig(), SensorOptions()
+            d.configure(
+                stream=mode,
+                options=opts,
+                sync_mode=SyncMode.MASTER if i == 0 else SyncMode.SLAVE,
+            )
+            sources.append(DepthCameraSource(d, stream=mode, options=opts))
+    if syncbox:
+        from acquire.syncbox import SyncBox, open_mock_syncbox
+
+        mock_box = open_mock_syncbox(seed=seed)
+        stack.append(("syncbox-mock", mock_box))
+        box = SyncBox(mock_box.port)
+        box.open()
+        stack.append(("syncbox", box))
+        sources.append(SyncBoxSource(box))
+    return sources
+
+
+def record(
+    *,
+    out: Path,
+    seconds: float,
+    mock: bool,
+    rig: Path | None,
+    scenario: str = "default",
+    seed: int = 0,
+    cameras: int = 1,
+    syncbox: bool = True,
+    compression: Literal["zstd", "lz4", "none"] = "lz4",
+    split_seconds: float | None = None,
+    split_mb: float | None = None,
+    min_free_mb: float = 512.0,
+    as_json: bool = False,
+    sources: Sequence[StreamSource] | None = None,
+) -> int:
+    """``mocaprig record``: record the rig (or the mock rig, or given ``sources``) into ``out``.
+
+    Returns 0 when the recording ended as asked, 1 when it stopped early (disk, write error).
+    """
+    if seconds <= 0:
+        msg = f"--seconds must be > 0, got {seconds}"
+        raise ValidationError(msg)
+    stack: list[tuple[str, Any]] = []
+    hung: tuple[str, ...] = ()
+    metadata: dict[str, dict[str, str]] = {}
+    attachments: list[Attachment] = []
+    try:
+        if sources is None:
+            if rig is not None:
+                # The rig file is stored; opening real devices from it needs the rig-file
+                # schema (issue for acquire/rig.py), which does not exist yet.
+                msg = (
+                    f"--rig {rig}: recording real devices from a rig file is not implemented "
+                    "yet (no rig-file schema in acquire/); use --mock"
+                )
+                raise RecordingError(msg)
+            if not mock:
+                msg = "say what to record: --mock (simulated rig) or --rig RIG.toml"
+                raise ValidationError(msg)
+            sources = _mock_sources(
+                scenario=scenario,
+                seed=seed,
+                seconds=seconds,
+                cameras=cameras,
+                syncbox=syncbox,
+                stack=stack,
+            )
+            metadata["session"] = {"mock": "true", "scenario": scenario, "seed": str(seed)}
+        for src in sources:
+            metadata.update(getattr(src, "metadata", {}) or {})
+        recorder = Recorder(
+            out,
+            compression=compression,
+            split_seconds=split_seconds,
+            split_bytes=None if split_mb is None else int(split_mb * 1e6),
+            min_free_disk_bytes=int(min_free_mb * 1e6),
+            metadata=metadata,
+            attachments=attachments,
+        )
+        status = _StatusLine()
+        with recorder, stop_on_signals(recorder):
+            hung = record_sources(recorder, sources, seconds=seconds, on_status=status)
+        status.done()
+    finally:
+        for name, dev in reversed(stack):
+            if name in hung:
+                _log.warning("not closing %s: its reader thread is stuck in a device call", name)
+                continue
+            try:
+                dev.close()
+            except Exception as err:  # closing must not hide the recording's outcome
+                _log.warning("closing %s failed: %s", dev, err)
+    final = recorder.status()
+    files = [str(p) for p in recorder.files]
+    summary = {
+        "files": files,
+        "stop_reason": recorder.stop_reason.value if recorder.stop_reason else None,
+        "seconds": final.elapsed_ns / 1e9,
+        "bytes": final.bytes_written,
+        "drops_total": final.dropped_total,
+        "streams": [
+            {"topic": s.topic, "messages": s.written, "drops": s.dropped} for s in final.streams
+        ],
+    }
+    if as_json:
+        emit_json(summary)
+    else:
+        print(
+            f"recorded {final.elapsed_ns / 1e9:.1f} s, {final.bytes_written / 1e6:.1f} MB, "
+            f"{final.dropped_total} dropped -> {', '.join(files)}"
+        )
+        for s in final.streams:
+            print(f"  {s.topic:<36} {s.written:>8} msgs  {s.dropped:>6} dropped")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------
+# info / recover
+
+
+def recording_info(path: Path, *, as_json: bool) -> int:
+    """``mocaprig info``: topics, counts, rates, drops, counter gaps, chunks."""
+    from acquire.recording import info
+
+    inf = info(path)
+    d = inf.as_dict()
+    if as_json:
+        emit_json(d)
+        return 0
+    state = "indexed" if inf.indexed else "NO SUMMARY (crashed or unfinished)"
+    if inf.recovered:
+        state += ", recovered"
+    print(f"{path}: format {inf.format_version}, {state}, stop: {inf.stop_reason}")
+    print(
+        f"  duration {inf.duration_s:.3f} s, {inf.scan.complete_chunks} complete chunks, "
+        f"{inf.scan.bad_chunks} bad, truncated: {inf.scan.truncated} "
+        f"({inf.scan.bytes_unread} bytes unread)"
+    )
+    print(f"  {'topic':<36} {'schema':<26} {'msgs':>8} {'rate Hz':>9} {'drops':>6} {'gaps':>6}")
+    for s in inf.streams:
+        drops = "?" if s.drops is None else str(s.drops)
+        print(
+            f"  {s.topic:<36} {s.schema_name:<26} {s.messages:>8} {s.rate_hz:>9.1f} "
+            f"{drops:>6} {s.counter_gaps:>6}"
+        )
+    for name in inf.devices:
+        print(f"  device: {name}")
+    for a in inf.attachments:
+        print(f"  attachment: {a}")
+    return 0
+
+
+def recover_command(src: Path, out: Path, *, as_json: bool) -> int:
+    """``mocaprig recover``: exit 0 = nothing lost, 3 = something lost, 1 = nothing found."""
+    from acquire.recording import recover
+
+    rep = recover(src, out)
+    code = 0 if rep.lossless else (3 if rep.messages else 1)
+    if as_json:
+        emit_json(
+            {
+                "source": str(src),
+                "output": str(out),
+                "messages": rep.messages,
+                "metadata_records": rep.metadata_records,
+                "attachments": rep.attachments,
+                "complete_chunks": rep.scan.complete_chunks,
+                "bad_chunks": rep.scan.bad_chunks,
+                "truncated": rep.scan.truncated,
+                "bytes_unread": rep.scan.bytes_unread,
+                "lossless": rep.lossless,
+            }
+        )
+    else:
+        print(
+            f"{out}: {rep.messages} messages from {rep.scan.complete_chunks} complete chunks; "
+            f"{rep.scan.bad_chunks} bad chunks, {rep.scan.bytes_unread} bytes unread"
+            + ("" if rep.lossless else " (lossy)")
+        )
+    return code
+
+
+# -------------------------------------------------------------------------------------------
+# events text (RPG format) in and out
+
+
+def export_events_txt(
+    events: npt.NDArray[np.void], out: TextIO, *, width: int | None, height: int | None
+) -> None:
+    """Write events as RPG ``t x y p`` lines (t in s, µs precision); first line ``width height``."""
+    if width is not None and height is not None:
+        out.write(f"{width} {height}\n")
+    t = events["t"].astype(np.int64)
+    sign = np.where(t < 0, "-", "")
+    a = np.abs(t)
+    lines = [
+        f"{s}{sec}.{us:06d} {x} {y} {p}\n"
+        for s, sec, us, x, y, p in zip(
+            sign.tolist(),
+            (a // 1_000_000).tolist(),
+            (a % 1_000_000).tolist(),
+            events["x"].tolist(),
+            events["y"].tolist(),
+            events["p"].tolist(),
+            strict=True,
+        )
+    ]
+    out.writelines(lines)
+
+
+def read_events_txt(path: Path) -> tuple[npt.NDArray[np.void], int | None, int | None]:
+    """Read an RPG events text file: ``t x y p`` per line (t in s); first line may be
+    ``width height``. Times are parsed exactly to µs (no float rounding).
+
+    Raises:
+        RecordingError: a malformed line (its number is given).
+    """
+    from acquire.events import make_events
+
+    width = height = None
+    ts: list[int] = []
+    xs: list[int] = []
+    ys: list[int] = []
+    ps: list[int] = []
+    with path.open("r", encoding="ascii") as f:
+        for lineno, line in enumerate(f, 1):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            try:
+                if lineno == 1 and len(tok) == 2:
+                    width, height = int(tok[0]), int(tok[1])
+                    continue
+                if len(tok) != 4:
+                    bad = f"expected 4 columns, got {len(tok)}"
+                    raise ValueError(bad)
+                ts.append(_seconds_to_us(tok[0]))
+                xs.append(int(tok[1]))
+                ys.append(int(tok[2]))
+                ps.append(int(tok[3]))
+            except ValueError as err:
+                msg = f"{path}:{lineno}: not an RPG event line ('t x y p'): {line.strip()!r}"
+                raise RecordingError(msg) from err
+    return make_events(ts, xs, ys, ps), width, height
+
+
+def _seconds_to_us(text: str) -> int:
+    neg = text.startswith("-")
+    body = text.lstrip("+-")
+    whole, _, frac = body.partition(".")
+    if "e" in body.lower():
+        us = round(float(body) * 1e6)
+    else:
+        frac = (frac + "000000")[:6]
+        rest = body.partition(".")[2][6:]
+        us = int(whole or "0") * 1_000_000 + int(frac)
+        if rest and int(rest[0]) >= 5:  # round half up beyond µs
+            us += 1
+    return -us if neg else us
+
+
+def import_events(
+    src: Path,
+    out: Path,
+    *,
+    width: int | None,
+    height: int | None,
+    serial: str = "imported",
+    packet_us: int = 10_000,
+    as_json: bool = False,
+) -> int:
+    """``mocaprig import-events``: an RPG events text file into a recording.
+
+    Events go to ``/davis/<serial>/events`` in packets of ``packet_us``; there is no host
+    receive time, so ``log_time`` = event device time (µs → ns, clamped at 0).
+    """
+    events, w0, h0 = read_events_txt(src)
+    w = width if width is not None else (w0 if w0 is not None else 240)
+    h = height if height is not None else (h0 if h0 is not None else 180)
+    if events.size and (int(events["x"].max()) >= w or int(events["y"].max()) >= h):
+        msg = f"{src}: events fall outside {w}x{h}; pass --width/--height"
+        raise RecordingError(msg)
+    if events.size and int(events["t"].min()) < 0:
+        msg = f"{src}: negative timestamps cannot be stored (the mono encoding needs t >= 0)"
+        raise RecordingError(msg)
+    rec = Recorder(
+        out,
+        compression="zstd",
+        queue_messages=1 << 30,
+        queue_bytes=1 << 62,
+        min_free_disk_bytes=0,
+        metadata={"import": {"source": src.name, "format": "rpg-txt", "width": str(w),
+                             "height": str(h)}},
+    )  # fmt: skip
+    frame_id = f"davis_{serial}"
+    n = 0
+    with rec:
+        hd = rec.add_stream(
+            topic("davis", serial, "events"), EventPacket, metadata={"serial": serial}
+        )
+        if events.size:
+            t = events["t"]
+            bins = (t - t[0]) // packet_us
+            cuts = np.flatnonzero(np.diff(bins)) + 1
+            for piece in np.split(events, cuts):
+                for part in split_events(piece):
+                    ok = rec.put(
+                        hd,
+                        EventPacket(part, w, h, n, frame_id),
+                        log_time_ns=max(int(part["t"][0]), 0) * 1000,
+                        sequence=n,
+                    )
+                    if not ok:
+                        msg = f"importing {src}: a packet was dropped; this is a bug, report it"
+                        raise RecordingError(msg)
+                    n += 1
+    if as_json:
+        emit_json({"output": str(out), "events": int(events.size), "packets": n})
+    else:
+        print(f"{out}: {events.size} events in {n} packets ({w}x{h})")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------
+# export
+
+
+def export(path: Path, *, topic_name: str, fmt: ExportFormat, out: Path, fps: float = 30.0) -> int:
+    """``mocaprig export``: one topic to npz / txt (events) / png (images) / mp4 (images)."""
+    from acquire.recording import Recording
+
+    if out.exists() and fmt != "png":
+        msg = f"{out} exists already; not overwriting (choose another --out)"
+        raise RecordingError(msg)
+    with Recording(path) as rec:
+        ch = rec.channels.get(topic_name)
+        if ch is None:
+            msg = f"{path} has no topic {topic_name!r}; topics: {', '.join(rec.topics)}"
+            raise RecordingError(msg)
+        schema = ch.schema_name
+        if fmt == "txt":
+            if schema != EventPacket.SCHEMA.name:
+                msg = f"--format txt is for event topics; {topic_name} holds {schema}"
+                raise RecordingError(msg)
+            ev = rec.events(topic_name)
+            size = _event_size(rec, topic_name)
+            with out.open("x", encoding="ascii") as f:
+                export_events_txt(ev, f, width=size[0], height=size[1])
+            print(f"{out}: {ev.size} events")
+            return 0
+        if fmt == "npz":
+            arrays = _topic_arrays(rec, topic_name, schema)
+            with out.open("xb") as f:
+                np.savez_compressed(f, **arrays)  # type: ignore[arg-type]
+            print(f"{out}: {', '.join(f'{k} {v.shape}' for k, v in arrays.items())}")
+            return 0
+        if schema != ImageMsg.SCHEMA.name:
+            msg = f"--format {fmt} is for image topics; {topic_name} holds {schema}"
+            raise RecordingError(msg)
+        return _export_images(rec, topic_name, fmt, out, fps)
+
+
+def _event_size(rec: Any, topic_name: str) -> tuple[int | None, int | None]:
+    for _, p in rec.decoded(topic_name):
+        return int(p.width), int(p.height)
+    return None, None
+
+
+def _topic_arrays(rec: Any, topic_name: str, schema: str) -> dict[str, npt.NDArray[Any]]:
+    if schema == EventPacket.SCHEMA.name:
+        ev = rec.events(topic_name)
+        return {k: ev[k] for k in ("t", "x", "y", "p")}
+    if schema == ImuPacket.SCHEMA.name:
+        s = rec.imu(topic_name)
+        return {k: s[k] for k in s.dtype.names}
+    if schema == TriggerPacket.SCHEMA.name:
+        s = rec.triggers(topic_name)
+        return {k: s[k] for k in s.dtype.names}
+    if schema == ImageMsg.SCHEMA.name:
+        times, stamps, imgs = [], [], []
+        for t, m in rec.images(topic_name):
+            times.append(t)
+            stamps.append(m.timestamp_ns)
+            imgs.append(m.image)
+        return {
+            "log_time_ns": np.asarray(times, np.int64),
+            "timestamp_ns": np.asarray(stamps, np.int64),
+            "images": np.stack(imgs) if imgs else np.empty((0, 0, 0)),
+        }
+    msg = f"--format npz does not handle {schema} topics; use the Python reader"
+    raise RecordingError(msg)
+
+
+def _to8(img: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
+    if img.dtype == np.uint8:
+        return img
+    hi = float(img.max()) if img.size else 0.0
+    return (img.astype(np.float64) * (255.0 / hi if hi > 0 else 0.0)).astype(np.uint8)
+
+
+def _export_images(rec: Any, topic_name: str, fmt: str, out: Path, fps: float) -> int:
+    import cv2
+
+    n = 0
+    if fmt == "png":
+        out.mkdir(parents=True, exist_ok=True)
+        for t, m in rec.images(topic_name):
+            p = out / f"{n:06d}_{t}.png"
+            if p.exists():
+                msg = f"{p} exists already; export into an empty folder"
+                raise RecordingError(msg)
+            cv2.imwrite(str(p), m.image)  # 16-bit PNG for mono16/16UC1
+            n += 1
+        print(f"{out}: {n} PNG files")
+        return 0
+    writer: Any = None
+    try:
+        for _, m in rec.images(topic_name):
+            frame = _to8(m.image)
+            if writer is None:
+                h, w = frame.shape
+                fourcc = cv2.VideoWriter_fourcc(*"mp4v")  # type: ignore[attr-defined]
+                writer = cv2.VideoWriter(str(out), fourcc, fps, (w, h), isColor=False)
+                if not writer.isOpened():
+                    msg = f"OpenCV cannot write {out} (mp4v codec missing?)"
+                    raise RecordingError(msg)
+            writer.write(frame)
+            n += 1
+    finally:
+        if writer is not None:
+            writer.release()
+    print(f"{out}: {n} frames at {fps} fps (8-bit, scaled per frame)")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------
+# argparse
+
+
+def _parser(sub: Any, name: str, help_: str, examples: str) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = sub.add_parser(
+        name,
+        help=help_,
+        description=help_,
+        epilog="examples:\n" + examples,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    return p
+
+
+def register_record(subparsers: Any) -> None:
+    """Entry point: ``mocaprig record``."""
+    p = _parser(
+        subparsers,
+        "record",
+        "record a session into MCAP (live status line; Ctrl-C finishes the file)",
+        "  mocaprig record --mock --seconds 10 --out session.mcap\n"
+        "  mocaprig record --mock --scenario default --cameras 2 --seconds 5 --out s.mcap\n"
+        "  mocaprig record --mock --seconds 600 --split-seconds 60 --out long.mcap\n",
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--rig", type=Path, help="rig description (TOML) of the real devices")
+    src.add_argument("--mock", action="store_true", help="record the simulated rig")
+    p.add_argument("--scenario", default="default", help="mock scenario name")
+    p.add_argument("--seed", type=int, default=0, help="mock world seed")
+    p.add_argument("--cameras", type=int, default=1, help="mock D415 count (0..4)")
+    p.add_argument("--no-syncbox", action="store_true", help="mock rig without the sync box")
+    p.add_argument("--seconds", type=float, required=True, help="recording length (s)")
+    p.add_argument("--out", type=Path, required=True, help="output .mcap (never overwritten)")
+    p.add_argument("--compression", choices=["lz4", "zstd", "none"], default="lz4")
+    p.add_argument("--split-seconds", type=float, help="start a new numbered file every N s")
+    p.add_argument("--split-mb", type=float, help="start a new numbered file every N MB")
+    p.add_argument("--min-free-mb", type=float, default=512.0, help="stop when less is free")
+    add_json_flag(p)
+    p.set_defaults(
+        func=lambda a: record(
+            out=a.out,
+            seconds=a.seconds,
+            mock=a.mock,
+            rig=a.rig,
+            scenario=a.scenario,
+            seed=a.seed,
+            cameras=a.cameras,
+            syncbox=not a.no_syncbox,
+            compression=a.compression,
+            split_seconds=a.split_seconds,
+            split_mb=a.split_mb,
+            min_free_mb=a.min_free_mb,
+            as_json=a.json,
+        )
+    )
+
+
+def register_info(subparsers: Any) -> None:
+    """Entry point: ``mocaprig info``."""
+    p = _parser(
+        subparsers,
+        "info",
+        "summarise a recording: streams, counts, rates, drops, counter gaps, chunks",
+        "  mocaprig info session.mcap\n  mocaprig info crashed.mcap --json\n",
+    )
+    p.add_argument("file", type=Path, help="recording (.mcap), finished or crashed")
+    add_json_flag(p)
+    p.set_defaults(func=lambda a: recording_info(a.file, as_json=a.json))
+
+
+def register_recover(subparsers: Any) -> None:
+    """Entry point: ``mocaprig recover``."""
+    p = _parser(
+        subparsers,
+        "recover",
+        "rewrite a crashed recording with a full index (exit 3 when data was lost)",
+        "  mocaprig recover crashed.mcap fixed.mcap\n",
+    )
+    p.add_argument("input", type=Path, help="recording without a summary (crash, kill)")
+    p.add_argument("output", type=Path, help="new file (never overwritten)")
+    add_json_flag(p)
+    p.set_defaults(func=lambda a: recover_command(a.input, a.output, as_json=a.json))
+
+
+def register_export(subparsers: Any) -> None:
+    """Entry point: ``mocaprig export``."""
+    p = _parser(
+        subparsers,
+        "export",
+        "export one topic: npz (any array topic), txt (events, RPG 't x y p'), png/mp4 (images)",
+        "  mocaprig export s.mcap --topic /davis/00000042/events --format txt --out ev.txt\n"
+        "  mocaprig export s.mcap --topic /davis/00000042/imu --format npz --out imu.npz\n"
+        "  mocaprig export s.mcap --topic /d415/123/depth --format png --out depth_png/\n"
+        "  mocaprig export s.mcap --topic /d415/123/ir --format mp4 --out ir.mp4\n",
+    )
+    p.add_argument("file", type=Path)
+    p.add_argument("--topic", required=True)
+    p.add_argument("--format", choices=["npz", "txt", "png", "mp4"], required=True)
+    p.add_argument("--out", type=Path, required=True, help="file (folder for png)")
+    p.add_argument("--fps", type=float, default=30.0, help="mp4 frame rate")
+    p.set_defaults(
+        func=lambda a: export(a.file, topic_name=a.topic, fmt=a.format, out=a.out, fps=a.fps)
+    )
+
+
+def register_import_events(subparsers: Any) -> None:
+    """Entry point: ``mocaprig import-events``."""
+    p = _parser(
+        subparsers,
+        "import-events",
+        "import an RPG events text file (t x y p; optional 'width height' first line)",
+        "  mocaprig import-events events.txt --out events.mcap\n"
+        "  mocaprig import-events events.txt --out e.mcap --width 346 --height 260\n",
+    )
+    p.add_argument("file", type=Path)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--width", type=int, help="sensor width (default: file header, else 240)")
+    p.add_argument("--height", type=int, help="sensor height (default: file header, else 180)")
+    p.add_argument("--serial", default="imported", help="name used in the topic")
+    add_json_flag(p)
+    p.set_defaults(
+        func=lambda a: import_events(
+            a.file, a.out, width=a.width, height=a.height, serial=a.serial, as_json=a.json
+        )
+    )
