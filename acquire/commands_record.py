@@ -7,6 +7,7 @@ function returning an exit code. Device modules are imported lazily.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import sys
@@ -30,6 +31,7 @@ from acquire.recording_format import (
     ImageMsg,
     ImuPacket,
     RecorderStatus,
+    StreamStatus,
     SyncPulses,
     TriggerPacket,
     split_events,
@@ -39,12 +41,14 @@ from acquire.recording_format import (
 __all__ = [
     "DavisSource",
     "DepthCameraSource",
+    "RecordingSummary",
     "SyncBoxSource",
     "export",
     "export_events_txt",
     "import_events",
     "read_events_txt",
     "record",
+    "record_to_file",
     "recording_info",
     "recover_command",
     "register_export",
@@ -68,10 +72,34 @@ class DavisSource:
     """A DAVIS240C (:class:`acquire.davis240c.Davis240C`, opened) as a :class:`StreamSource`.
 
     Topics: ``/davis/<serial>/{events,frame,frame_info,imu,trigger}``.
+
+    Keyword options:
+        events_per_packet_max: Split larger event packets.
+        manage_streaming: ``run`` starts the camera and stops it at the end (default); with
+            ``False`` the caller has started it and stops it after ``run`` returned.
+        dvs: ``False`` switches the DVS module off after the start (register DVS RUN = 0, a
+            real device configuration): APS frames, IMU and the external input keep running.
+        offline: The camera is a simulated device paced as fast as possible: messages go in
+            with :meth:`Recorder.put_wait` (back-pressure instead of drops) and the source ends
+            at ``end_t_us`` (device µs) or when the stream ends.
+        end_t_us: Offline end: stop after the first packet reaching this device time (µs).
     """
 
-    def __init__(self, cam: Any, *, events_per_packet_max: int = 200_000) -> None:
+    def __init__(
+        self,
+        cam: Any,
+        *,
+        events_per_packet_max: int = 200_000,
+        manage_streaming: bool = True,
+        dvs: bool = True,
+        offline: bool = False,
+        end_t_us: int | None = None,
+    ) -> None:
         self.cam = cam
+        self.manage_streaming = manage_streaming
+        self.dvs = dvs
+        self.offline = offline
+        self.end_t_us = end_t_us
         self.serial: str = cam.serial
         self.name = f"davis/{self.serial}"
         self.frame_id = f"davis_{self.serial}"
@@ -81,7 +109,7 @@ class DavisSource:
         self.height: int = int(info.dvs_size_y)
         self.metadata: dict[str, dict[str, str]] = {
             f"device/{self.name}": {k: str(v) for k, v in info.as_dict().items()},
-            f"settings/{self.name}": _davis_settings(cam),
+            f"settings/{self.name}": {**_davis_settings(cam), "dvs.run": str(dvs).lower()},
         }
         self._h: dict[str, Any] = {}
 
@@ -100,13 +128,21 @@ class DavisSource:
 
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
         cam = self.cam
-        cam.start()
+        if self.manage_streaming:
+            cam.start()
+            if not self.dvs:
+                from acquire.davis240c_config import DvsParam, Module
+
+                cam.config_set(Module.DVS, DvsParam.RUN, 0)
+        put = recorder.put_wait if self.offline else recorder.put
         seq = {"events": 0, "frame": 0, "imu": 0, "trigger": 0}
         h = self._h
         try:
             while not stop.is_set():
                 pkt = cam.get_packet(timeout_s=0.1)
                 if pkt is None:
+                    if self.offline and not cam.running:
+                        break  # the simulated device ended (or failed: stats are logged)
                     continue
                 t = pkt.host_time_ns or None
                 if pkt.events.size:
@@ -115,12 +151,12 @@ class DavisSource:
                             p = EventPacket(
                                 part, self.width, self.height, seq["events"], self.frame_id
                             )
-                            recorder.put(h["events"], p, log_time_ns=t, sequence=seq["events"])
+                            put(h["events"], p, log_time_ns=t, sequence=seq["events"])
                             seq["events"] += 1
                 for fr in pkt.frames:
                     n = seq["frame"]
                     img = ImageMsg(fr.pixels_16bit, "mono16", fr.t_us * 1000, self.frame_id)
-                    recorder.put(h["frame"], img, log_time_ns=t, sequence=n)
+                    put(h["frame"], img, log_time_ns=t, sequence=n)
                     fi = DavisFrameInfo(
                         n,
                         fr.t_start_frame_us,
@@ -133,18 +169,21 @@ class DavisSource:
                         fr.global_shutter,
                         self.frame_id,
                     )
-                    recorder.put(h["frame_info"], fi, log_time_ns=t, sequence=n)
+                    put(h["frame_info"], fi, log_time_ns=t, sequence=n)
                     seq["frame"] += 1
                 if pkt.imu.size:
                     imu = ImuPacket(pkt.imu, seq["imu"], self.frame_id)
-                    recorder.put(h["imu"], imu, log_time_ns=t, sequence=seq["imu"])
+                    put(h["imu"], imu, log_time_ns=t, sequence=seq["imu"])
                     seq["imu"] += 1
                 if pkt.specials.size:
                     tr = TriggerPacket(pkt.specials, seq["trigger"], self.frame_id)
-                    recorder.put(h["trigger"], tr, log_time_ns=t, sequence=seq["trigger"])
+                    put(h["trigger"], tr, log_time_ns=t, sequence=seq["trigger"])
                     seq["trigger"] += 1
+                if self.end_t_us is not None and _packet_end_us(pkt) >= self.end_t_us:
+                    break
         finally:
-            cam.stop()
+            if self.manage_streaming:
+                cam.stop()
             stats = cam.stats()
             recorder.log(
                 "INFO",
@@ -168,6 +207,17 @@ def _davis_settings(cam: Any) -> dict[str, str]:
     return out
 
 
+def _packet_end_us(pkt: Any) -> int:
+    """The latest device time (µs) a DAVIS packet carries (-1 when it carries none)."""
+    latest = -1
+    for arr in (pkt.events, pkt.imu, pkt.specials):
+        if arr.size:
+            latest = max(latest, int(arr["t"][-1]))
+    for fr in pkt.frames:
+        latest = max(latest, int(fr.t_us))
+    return latest
+
+
 def _chunks(arr: npt.NDArray[Any], n: int) -> list[npt.NDArray[Any]]:
     return [arr[i : i + n] for i in range(0, arr.size, n)] if arr.size > n else [arr]
 
@@ -179,10 +229,26 @@ class DepthCameraSource:
     once at start (and is the same for IR and depth on a D415).
     """
 
-    def __init__(self, cam: Any, *, stream: Any = None, options: Any = None) -> None:
+    def __init__(
+        self,
+        cam: Any,
+        *,
+        stream: Any = None,
+        options: Any = None,
+        manage_streaming: bool = True,
+        offline: bool = False,
+    ) -> None:
         """``stream``/``options``: the StreamConfig and SensorOptions the camera was configured
-        with, stored in its metadata record (mode, exposure, gain, laser power)."""
+        with, stored in its metadata record (mode, exposure, gain, laser power).
+
+        ``manage_streaming``: ``run`` starts and stops the camera (default); ``False``: the
+        caller does (e.g. to start every camera of a simulated rig at the same instant).
+        ``offline``: a simulated camera paced as fast as possible: messages go in with
+        :meth:`Recorder.put_wait` (back-pressure, no drops) and ``poll() -> None`` means the
+        simulated session is over (the source ends)."""
         self.cam = cam
+        self.manage_streaming = manage_streaming
+        self.offline = offline
         cinfo = cam.info
         self.serial: str = cinfo.serial
         self.name = f"d415/{self.serial}"
@@ -219,7 +285,9 @@ class DepthCameraSource:
 
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
         cam, h = self.cam, self._h
-        cam.start()
+        if self.manage_streaming:
+            cam.start()
+        put = recorder.put_wait if self.offline else recorder.put
         try:
             k = cam.intrinsics()
             calib = CameraCalibrationMsg(
@@ -230,10 +298,12 @@ class DepthCameraSource:
                 "plumb_bob",
                 self.frame_id,
             )
-            recorder.put(h["camera_info"], calib)
+            put(h["camera_info"], calib)
             while not stop.is_set():
                 fs = cam.poll(0.1)
                 if fs is None:
+                    if self.offline:
+                        break  # the simulated session is over: no frame will come
                     continue
                 tm = fs.timing
                 n = int(tm.frame_counter)
@@ -247,8 +317,8 @@ class DepthCameraSource:
                 t = recorder.clock_ns()
                 ir = ImageMsg(fs.infrared.image, "mono8", stamp, self.frame_id)
                 depth = ImageMsg(fs.depth.image, "16UC1", stamp, self.frame_id)
-                recorder.put(h["ir"], ir, log_time_ns=t, sequence=n)
-                recorder.put(h["depth"], depth, log_time_ns=t, sequence=n)
+                put(h["ir"], ir, log_time_ns=t, sequence=n)
+                put(h["depth"], depth, log_time_ns=t, sequence=n)
                 info = D415FrameInfo(
                     n,
                     tm.sensor_timestamp_us,
@@ -260,9 +330,10 @@ class DepthCameraSource:
                     float(fs.depth_scale_m),
                     self.frame_id,
                 )
-                recorder.put(h["frame_info"], info, log_time_ns=t, sequence=n)
+                put(h["frame_info"], info, log_time_ns=t, sequence=n)
         finally:
-            cam.stop()
+            if self.manage_streaming:
+                cam.stop()
 
 
 class SyncBoxSource:
@@ -413,6 +484,98 @@ def _mock_sources(
     return sources
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class RecordingSummary:
+    """What :func:`record_to_file` recorded.
+
+    Attributes:
+        files: The file(s) written (several when split).
+        stop_reason: Why the recording ended (:class:`acquire.recorder.StopReason` value).
+        seconds: Host time recorded (s).
+        bytes: Bytes written.
+        drops_total: Messages dropped, all streams.
+        streams: Final per-stream counters.
+        hung_sources: Sources whose thread did not stop (their devices must not be closed).
+    """
+
+    files: tuple[Path, ...]
+    stop_reason: str | None
+    seconds: float
+    bytes: int
+    drops_total: int
+    streams: tuple[StreamStatus, ...]
+    hung_sources: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (what ``record --json`` prints)."""
+        return {
+            "files": [str(p) for p in self.files],
+            "stop_reason": self.stop_reason,
+            "seconds": self.seconds,
+            "bytes": self.bytes,
+            "drops_total": self.drops_total,
+            "streams": [
+                {"topic": s.topic, "messages": s.written, "drops": s.dropped} for s in self.streams
+            ],
+        }
+
+
+def record_to_file(
+    out: Path,
+    sources: Sequence[StreamSource],
+    *,
+    seconds: float | None,
+    followers: Sequence[StreamSource] = (),
+    metadata: dict[str, dict[str, str]] | None = None,
+    attachments: Sequence[Attachment] = (),
+    compression: Literal["zstd", "lz4", "none"] = "lz4",
+    split_seconds: float | None = None,
+    split_mb: float | None = None,
+    min_free_mb: float = 512.0,
+    status_line: bool = False,
+    handle_signals: bool = False,
+) -> RecordingSummary:
+    """Record ``sources`` (and ``followers``, see :func:`acquire.recorder.record_sources`) into
+    ``out`` for ``seconds`` (``None``: until every source ends, for offline sources).
+
+    The sources' ``metadata`` attributes are added to ``metadata``. Devices are not closed here.
+
+    Raises:
+        RecordingError: ``out`` exists, cannot be written, or the recording stopped early
+            (disk full, write error; the file is finished and readable).
+    """
+    meta = dict(metadata or {})
+    for src in [*sources, *followers]:
+        meta.update(getattr(src, "metadata", {}) or {})
+    recorder = Recorder(
+        out,
+        compression=compression,
+        split_seconds=split_seconds,
+        split_bytes=None if split_mb is None else int(split_mb * 1e6),
+        min_free_disk_bytes=int(min_free_mb * 1e6),
+        metadata=meta,
+        attachments=attachments,
+    )
+    status = _StatusLine() if status_line else None
+    guard = stop_on_signals(recorder) if handle_signals else contextlib.nullcontext()
+    with recorder, guard:
+        hung = record_sources(
+            recorder, sources, seconds=seconds, on_status=status, followers=followers
+        )
+    if status is not None:
+        status.done()
+    final = recorder.status()
+    return RecordingSummary(
+        files=recorder.files,
+        stop_reason=recorder.stop_reason.value if recorder.stop_reason else None,
+        seconds=final.elapsed_ns / 1e9,
+        bytes=final.bytes_written,
+        drops_total=final.dropped_total,
+        streams=final.streams,
+        hung_sources=hung,
+    )
+
+
 def record(
     *,
     out: Path,
@@ -430,22 +593,23 @@ def record(
     as_json: bool = False,
     sources: Sequence[StreamSource] | None = None,
 ) -> int:
-    """``mocaprig record``: record the rig (or the mock rig, or given ``sources``) into ``out``.
+    """``mocaprig record``: record the rig (a rig file's devices, the mock rig, or given
+    ``sources``) into ``out``.
 
-    Returns 0 when the recording ended as asked, 1 when it stopped early (disk, write error).
+    Returns 0 when the recording ended as asked (stopping early raises RecordingError).
     """
     if seconds <= 0:
         msg = f"--seconds must be > 0, got {seconds}"
         raise ValidationError(msg)
     stack: list[tuple[str, Any]] = []
-    hung: tuple[str, ...] = ()
+    summary: RecordingSummary | None = None
     metadata: dict[str, dict[str, str]] = {}
     attachments: list[Attachment] = []
     try:
         if sources is None:
             if rig is not None:
-                # The rig file is stored; opening real devices from it needs the rig-file
-                # schema (issue for acquire/rig.py), which does not exist yet.
+                # Opening real devices from a rig file needs the rig-file schema
+                # (acquire/rig_file.py), which does not exist yet.
                 msg = (
                     f"--rig {rig}: recording real devices from a rig file is not implemented "
                     "yet (no rig-file schema in acquire/); use --mock"
@@ -463,22 +627,21 @@ def record(
                 stack=stack,
             )
             metadata["session"] = {"mock": "true", "scenario": scenario, "seed": str(seed)}
-        for src in sources:
-            metadata.update(getattr(src, "metadata", {}) or {})
-        recorder = Recorder(
+        summary = record_to_file(
             out,
-            compression=compression,
-            split_seconds=split_seconds,
-            split_bytes=None if split_mb is None else int(split_mb * 1e6),
-            min_free_disk_bytes=int(min_free_mb * 1e6),
+            sources,
+            seconds=seconds,
             metadata=metadata,
             attachments=attachments,
+            compression=compression,
+            split_seconds=split_seconds,
+            split_mb=split_mb,
+            min_free_mb=min_free_mb,
+            status_line=True,
+            handle_signals=True,
         )
-        status = _StatusLine()
-        with recorder, stop_on_signals(recorder):
-            hung = record_sources(recorder, sources, seconds=seconds, on_status=status)
-        status.done()
     finally:
+        hung = summary.hung_sources if summary is not None else ()
         for name, dev in reversed(stack):
             if name in hung:
                 _log.warning("not closing %s: its reader thread is stuck in a device call", name)
@@ -487,27 +650,16 @@ def record(
                 dev.close()
             except Exception as err:  # closing must not hide the recording's outcome
                 _log.warning("closing %s failed: %s", dev, err)
-    final = recorder.status()
-    files = [str(p) for p in recorder.files]
-    summary = {
-        "files": files,
-        "stop_reason": recorder.stop_reason.value if recorder.stop_reason else None,
-        "seconds": final.elapsed_ns / 1e9,
-        "bytes": final.bytes_written,
-        "drops_total": final.dropped_total,
-        "streams": [
-            {"topic": s.topic, "messages": s.written, "drops": s.dropped} for s in final.streams
-        ],
-    }
     if as_json:
-        emit_json(summary)
+        emit_json(summary.as_dict())
     else:
+        files = ", ".join(str(p) for p in summary.files)
         print(
-            f"recorded {final.elapsed_ns / 1e9:.1f} s, {final.bytes_written / 1e6:.1f} MB, "
-            f"{final.dropped_total} dropped -> {', '.join(files)}"
+            f"recorded {summary.seconds:.1f} s, {summary.bytes / 1e6:.1f} MB, "
+            f"{summary.drops_total} dropped -> {files}"
         )
-        for s in final.streams:
-            print(f"  {s.topic:<36} {s.written:>8} msgs  {s.dropped:>6} dropped")
+        for st in summary.streams:
+            print(f"  {st.topic:<36} {st.written:>8} msgs  {st.dropped:>6} dropped")
     return 0
 
 

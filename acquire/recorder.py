@@ -237,6 +237,8 @@ class Recorder:
         self._disk_free = disk_free_bytes or (lambda p: shutil.disk_usage(p).free)
 
         self._lock = threading.Lock()
+        self._room = threading.Condition(self._lock)  # put_wait() waits here for queue room
+        self._waiting = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._streams: list[_Stream] = []
@@ -303,6 +305,8 @@ class Recorder:
                 self._stop_reason = StopReason.REQUESTED
         self._stop.set()
         self._wake.set()
+        with self._lock:
+            self._room.notify_all()
 
     def close(self) -> None:
         """Stop, drain the queues, finish the file and join the writer thread (idempotent)."""
@@ -396,6 +400,43 @@ class Recorder:
                 or len(s.queue) >= s.max_messages
                 or s.queued_bytes + n > s.max_bytes
             ):
+                s.dropped += 1
+                return False
+            s.queue.append((t, sequence & 0xFFFFFFFF, message, n))
+            s.queued_bytes += n
+        self._wake.set()
+        return True
+
+    def put_wait(
+        self,
+        stream: StreamHandle,
+        message: RecordedPayload,
+        *,
+        log_time_ns: int | None = None,
+        sequence: int = 0,
+    ) -> bool:
+        """Queue one message, **waiting** while the stream's queue is full (back-pressure).
+
+        Only for offline sources (a simulated device paced "as fast as possible", a file being
+        imported): they can wait, a live device reader must not (use :meth:`put`). Returns
+        ``False`` (and counts a drop) only when the recorder stops while waiting or before.
+        Arguments as :meth:`put`.
+        """
+        t = self._clock_ns() if log_time_ns is None else log_time_ns
+        n = message.nbytes
+        s = self._streams[stream.index]
+        with self._lock:
+            s.received += 1
+            while not self._stop.is_set() and (
+                len(s.queue) >= s.max_messages or (s.queue and s.queued_bytes + n > s.max_bytes)
+            ):
+                self._waiting += 1
+                try:
+                    self._wake.set()
+                    self._room.wait(0.1)
+                finally:
+                    self._waiting -= 1
+            if self._stop.is_set():
                 s.dropped += 1
                 return False
             s.queue.append((t, sequence & 0xFFFFFFFF, message, n))
@@ -592,6 +633,8 @@ class Recorder:
                     if not s.queue:
                         break
                     log_time, seq, message, n = s.queue.popleft()
+                    if self._waiting:
+                        self._room.notify_all()
                 disk_full = self._stop_reason is StopReason.DISK_FULL
                 if disk_full and s.handle.index != self._logs.index:
                     with self._lock:  # no room left: drop what is still queued
@@ -774,9 +817,15 @@ def record_sources(
     on_status: Callable[[RecorderStatus], None] | None = None,
     status_period_s: float = 0.5,
     join_timeout_s: float = 5.0,
+    followers: Sequence[StreamSource] = (),
 ) -> tuple[str, ...]:
     """Run ``sources`` (one thread each) into a started ``recorder`` for ``seconds`` (or until
     the recorder stops or every source ends); then stop the sources and return.
+
+    ``followers`` run alongside (one thread each) but never end a recording by themselves:
+    they are stopped once every one of ``sources`` has ended (e.g. a sync box that listens to
+    simulated cameras for as long as those deliver). With ``seconds=None`` the recording lasts
+    until every source ends (offline sources: the end of a simulated session).
 
     A source that raises is logged into the file's ``/log`` (level ERROR) and the others go on.
     Returns the names of the sources whose thread did not end within ``join_timeout_s`` (a hung
@@ -794,12 +843,14 @@ def record_sources(
             if not stop.is_set():
                 recorder.log("INFO", f"source {src.name} ended", name=src.name)
 
-    for src in sources:
+    everyone = [*sources, *followers]
+    for src in everyone:
         src.declare(recorder)
-    for src in sources:
+    for src in everyone:
         th = threading.Thread(target=runner, args=(src,), name=f"source-{src.name}", daemon=True)
         th.start()
         threads.append(th)
+    leading = threads[: len(sources)]
     t0 = time.monotonic()
     try:
         while True:
@@ -809,14 +860,14 @@ def record_sources(
                 on_status(recorder.status())
             if seconds is not None and time.monotonic() - t0 >= seconds:
                 break
-            if not any(th.is_alive() for th in threads):
+            if not any(th.is_alive() for th in leading):
                 break
     finally:
         stop.set()
         deadline = time.monotonic() + join_timeout_s
         for th in threads:
             th.join(timeout=max(deadline - time.monotonic(), 0.0))
-    hung = tuple(src.name for src, th in zip(sources, threads, strict=True) if th.is_alive())
+    hung = tuple(src.name for src, th in zip(everyone, threads, strict=True) if th.is_alive())
     for name in hung:
         recorder.log("WARNING", f"source {name} did not stop within {join_timeout_s} s", name=name)
     return hung

@@ -320,6 +320,9 @@ class DavisSimulator:
         sync_source: Callable[[int], int | None] | None = None,
     ) -> None:
         self.scenario = scenario
+        #: False while the DVS module is off (``configure(dvs_enabled=...)``).
+        self.dvs_enabled = True
+        self._readapt = False
         self.exposure_us = 0
         self.frame_interval_us = 0
         self.imu_rate_hz = 0.0
@@ -388,8 +391,14 @@ class DavisSimulator:
         exposure_us: int | None = None,
         frame_interval_us: int | None = None,
         imu_rate_hz: float | None = None,
+        dvs_enabled: bool | None = None,
     ) -> None:
-        """Change APS or IMU settings (the USB mock's register writes); ``None`` keeps one.
+        """Change APS, IMU or DVS settings (the USB mock's register writes); ``None`` keeps one.
+
+        ``dvs_enabled=False`` (the DVS module is off) skips the DVS model: no events, no motion
+        probing; renders only at APS exposure starts and ends (about a tenth of the cost with
+        the default 4 ms exposure every 40 ms). When it comes back on, every pixel re-adapts to
+        the scene (as after a reset).
 
         Exposures already scheduled keep their settings (the simulator plans up to 20 probe
         intervals, 20 ms by default, ahead of the last window); the next one starts one new
@@ -418,6 +427,11 @@ class DavisSimulator:
         if self.frame_interval_us and interval != self.frame_interval_us:
             self._next_start_us += interval - self.frame_interval_us
         self.exposure_us, self.frame_interval_us = exp, interval
+        if dvs_enabled is not None:
+            enabled = bool(dvs_enabled)
+            if enabled and not getattr(self, "dvs_enabled", True):
+                self._readapt = True
+            self.dvs_enabled = enabled
 
     def session_ns(self, t_us: npt.ArrayLike) -> I64:
         """Session times (int ns) of device times (µs, int or float)."""
@@ -474,7 +488,10 @@ class DavisSimulator:
             return DavisActivity(t0_us=t0, t1_us=t1, events=make_events([], [], [], []))
         self._advance(int(self.session_ns(t1)))
         t, idx, pol = self._events.pop_before(t1)
-        nt, nidx, npol = self._noise(t0, t1)
+        if self.dvs_enabled:
+            nt, nidx, npol = self._noise(t0, t1)
+        else:
+            nt, nidx, npol = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, bool)
         t = np.concatenate([t, nt])
         idx = np.concatenate([idx, nidx])
         pol = np.concatenate([pol, npol])
@@ -537,11 +554,12 @@ class DavisSimulator:
 
     def _plan(self, grid: I64) -> I64:
         """Render times in ``(grid[0], grid[-1]]`` (module doc: adaptive sampling)."""
-        disp = self.renderer.max_motion_px(grid)
         lam = self.motion_step_px
         max_ns = self.max_render_interval_us * 1000
         out: list[int] = []
-        for a, b, d in zip(grid[:-1], grid[1:], disp, strict=True):
+        # DVS off: no motion probing, renders at the APS exposure bounds only.
+        disp = self.renderer.max_motion_px(grid) if self.dvs_enabled else np.zeros(0)
+        for a, b, d in zip(grid[:-1], grid[1:], disp, strict=False):
             a_i, b_i, d_f = int(a), int(b), float(d)
             if d_f > lam:
                 k = min(int(np.ceil(d_f / lam)), max((b_i - a_i) // 10_000, 1))
@@ -595,17 +613,24 @@ class DavisSimulator:
             l1 = photoreceptor_lowpass(self._x_prev, x1, self._l_prev, u1 - self._u_prev, tau_us)
         else:
             l1 = x1
-        t, idx, pol = _esim_step(
-            self._l_prev,
-            l1,
-            self._u_prev,
-            u1,
-            self.ref,
-            self.c_on,
-            self.c_off,
-            self.last_us,
-            float(self.refractory_us),
-        )
+        if self._readapt and self.dvs_enabled:
+            # The DVS came back on: every pixel starts between its firing levels again.
+            self.ref = self._l_prev - self.c_on + self._ref_phase * (self.c_on + self.c_off)
+            self._readapt = False
+        if self.dvs_enabled:
+            t, idx, pol = _esim_step(
+                self._l_prev,
+                l1,
+                self._u_prev,
+                u1,
+                self.ref,
+                self.c_on,
+                self.c_off,
+                self.last_us,
+                float(self.refractory_us),
+            )
+        else:
+            t = np.empty(0)
         if t.size:
             self._events.add(np.floor(t + self.latency_us).astype(np.int64), idx, pol)
         # APS: exposures covering [r_prev, t_ns] integrate the trapezoid of the irradiance.

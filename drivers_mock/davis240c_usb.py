@@ -584,7 +584,25 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         self._anchor_wall: float | None = None
         self._lock = threading.RLock()
         self._config_version = -1
+        self._held = False
         self._source.reset(session_ns=0)
+
+    # -- test harness ------------------------------------------------------------------------------
+
+    def hold(self) -> None:
+        """Freeze device time (asap pacing): reads time out until :meth:`release`.
+
+        For deterministic simulated sessions: hold, start and configure the camera through the
+        driver (its timestamp reset then happens at device time 0 = the session instant of the
+        last reset), release. Register writes still work while held.
+        """
+        with self._lock:
+            self._held = True
+
+    def release(self) -> None:
+        """Let device time run again after :meth:`hold`."""
+        with self._lock:
+            self._held = False
 
     # -- device model ------------------------------------------------------------------------------
 
@@ -631,9 +649,14 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
             return
         configure = getattr(self._source, "configure", None)
         if callable(configure):
-            # The world simulator re-plans its exposures and IMU grid from these settings.
+            # The world simulator re-plans its exposures and IMU grid from these settings, and
+            # skips the DVS model (most of its cost) while the DVS module is off.
+            dvs_on = r.flag(m.MUX, MUX.RUN_CHIP) and r.flag(m.DVS, DVS.RUN)
             configure(
-                exposure_us=exposure_us, frame_interval_us=interval_us, imu_rate_hz=imu_rate_hz
+                exposure_us=exposure_us,
+                frame_interval_us=interval_us,
+                imu_rate_hz=imu_rate_hz,
+                dvs_enabled=dvs_on,
             )
 
     def _gate(self, act: DavisActivity) -> DavisActivity:
@@ -667,7 +690,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
 
     def _step(self, dt_us: int) -> None:
         """Run the device for ``dt_us`` µs of its own time."""
-        if self._unplugged or not self._counter_runs():
+        if self._unplugged or self._held or not self._counter_runs():
             return
         f = self.faults
         if f.unplug_at_us is not None and self.uptime_us + dt_us > f.unplug_at_us:
@@ -921,7 +944,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
             stalled = self.faults.stalled(self.uptime_us)
             if self._out and not stalled and (len(self._out) >= want or self._short_packet):
                 return
-            if not self._counter_runs() or waited >= budget_us:
+            if self._held or not self._counter_runs() or waited >= budget_us:
                 if self._out and not stalled:
                     return
                 raise _timeout()

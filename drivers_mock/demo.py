@@ -1,10 +1,14 @@
 """The main job on the simulated rig: ``mocaprig demo``.
 
 It runs the whole toolkit as far as it exists and reports its figures against ground truth.
-Today: simulate a session (truth + Vicon C3D/CSV) -> read the Vicon exports back through the
-product reader (:mod:`calib.vicon`) -> compare with the truth -> a summary figure and report.
-Stages that later issues add (recording through the real drivers, calibration, DeMoCap,
-EventCap) are listed in the report as not available yet, never faked.
+Today: simulate a session (truth + Vicon C3D/CSV) -> record it through the real drivers talking
+to the mock devices (``session.mcap``; :func:`drivers_mock.session.record_session`) -> ``info``
+on the recording, the D415 sync check (:class:`acquire.d415_sync.SyncChecker`) over the
+recorded frame timing, the DAVIS decode statistics and the pairing of the DAVIS trigger pulses
+with the D415 master's frames -> read the Vicon exports back through the product reader
+(:mod:`calib.vicon`) -> compare with the truth -> a summary figure and report. Stages that later
+issues add (calibration, DeMoCap, EventCap) are listed in the report as not available yet,
+never faked.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from acquire import __version__
 from acquire.cli import to_jsonable
@@ -34,7 +39,6 @@ Progress = Callable[[int, int], None]
 
 #: Stages of the main job that later issues add; the report lists them as pending.
 _PENDING_STAGES: tuple[tuple[str, str], ...] = (
-    ("record", "session recording through the real drivers talking to mock devices (issue 5)"),
     ("calibrate", "clapperboard time alignment, ICP + matching + bundle adjustment (issue 6)"),
     ("democap", "DeMoCap markers -> pose on the D415 rig (issue 7)"),
     ("eventcap", "EventCap 3D motion at 1000 fps from the DAVIS (issue 8)"),
@@ -99,8 +103,101 @@ def _vicon_vs_truth(traj: MarkerTrajectories, truth: Truth) -> dict[str, float]:
     }
 
 
+def _recording_figures(path: Path) -> dict[str, Any]:
+    """``info``, the D415 sync check, DAVIS statistics and trigger pairing of a recording."""
+    from acquire.d415_sync import SyncCheckConfig, SyncChecker
+    from acquire.davis240c_decode import SpecialType
+    from acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain
+    from acquire.recording import Recording, info
+
+    inf = info(path)
+    out: dict[str, Any] = {
+        "path": str(path),
+        "indexed": inf.indexed,
+        "streams": len(inf.streams),
+        "messages": sum(s.messages for s in inf.streams),
+        "drops": sum(s.drops or 0 for s in inf.streams),
+        "mb": path.stat().st_size / 1e6,
+        "duration_s": inf.duration_s,
+    }
+    with Recording(path) as rec:
+        meta = rec.metadata()
+        roles = {
+            v["serial"]: SyncMode(int(v["sync_mode"]))
+            for k, v in meta.items()
+            if k.startswith("device/d415/")
+        }
+        fi_topics = [t for t in rec.topics if t.startswith("/d415/") and t.endswith("/frame_info")]
+        master_sensor_us: list[int] = []
+        master = next((s for s, r in roles.items() if r is SyncMode.MASTER), None)
+        if roles:
+            checker = SyncChecker(roles, SyncCheckConfig(fps=30))
+            for m in rec.messages(fi_topics):
+                fi = m.decode()
+                serial = m.topic.split("/")[2]
+                checker.feed(
+                    serial,
+                    FrameTiming(
+                        frame_counter=fi.frame_counter,
+                        sensor_timestamp_us=fi.sensor_timestamp_us,
+                        frame_timestamp_us=fi.frame_timestamp_us,
+                        time_of_arrival_ms=fi.time_of_arrival_ms,
+                        timestamp_domain=TimestampDomain[fi.timestamp_domain],
+                        host_time_ns=fi.host_time_ns,
+                        timestamp_ms=fi.timestamp_ms,
+                    ),
+                )
+                if serial == master and fi.sensor_timestamp_us is not None:
+                    master_sensor_us.append(int(fi.sensor_timestamp_us))
+            rep = checker.report()
+            out["d415_cameras"] = len(roles)
+            out["d415_frames"] = {s: c.frames for s, c in rep.cameras.items()}
+            out["d415_sync_ok"] = rep.ok
+            out["d415_max_phase_error_us"] = max(
+                (c.max_phase_error_us or 0.0 for c in rep.cameras.values()), default=0.0
+            )
+        davis = sorted({t.split("/")[2] for t in rec.topics if t.startswith("/davis/")})
+        if davis:
+            base = f"/davis/{davis[0]}"
+            tr = rec.triggers(f"{base}/trigger")
+            pulses = tr["t"][tr["type"] == SpecialType.EXTERNAL_INPUT_PULSE].astype(np.int64)
+            out["davis_events"] = int(rec.events(f"{base}/events").size)
+            out["davis_frames"] = sum(1 for _ in rec.messages(f"{base}/frame"))
+            out["davis_imu_samples"] = int(rec.imu(f"{base}/imu").size)
+            out["davis_trigger_pulses"] = int(pulses.size)
+            out["davis_dvs"] = meta.get(f"settings/davis/{davis[0]}", {}).get("dvs.run")
+            out.update(_pair_pulses(pulses, np.asarray(master_sensor_us, np.int64)))
+    return out
+
+
+def _pair_pulses(
+    pulses_us: npt.NDArray[np.int64], frames_us: npt.NDArray[np.int64]
+) -> dict[str, Any]:
+    """Pair DAVIS trigger pulses with the D415 master's frames, in order from the first.
+
+    The clocks differ (offset, drift), so the pairing checks the intervals: pulse ``k`` and
+    frame ``k`` belong together when their intervals from the first pulse/frame agree within
+    100 µs (30 fps, a missed pulse or frame shifts them by 33 ms).
+    """
+    n = int(min(pulses_us.size, frames_us.size))
+    if n == 0:
+        return {"trigger_frame_pairs": 0, "trigger_frame_max_interval_error_us": None}
+    dp = pulses_us[:n] - pulses_us[0]
+    df = frames_us[:n] - frames_us[0]
+    err = np.abs(dp - df)
+    paired = int(np.sum(err < 100))
+    return {
+        "trigger_frame_pairs": paired,
+        "trigger_frame_max_interval_error_us": float(err.max()),
+    }
+
+
 def _summary_figure(
-    path: Path, sim: SimulationResult, truth: Truth, traj: MarkerTrajectories
+    path: Path,
+    sim: SimulationResult,
+    truth: Truth,
+    traj: MarkerTrajectories,
+    rec: dict[str, Any] | None = None,
 ) -> None:
     import matplotlib as mpl
 
@@ -174,7 +271,16 @@ def _summary_figure(
         ax.set_title(f"Vicon C3D - truth per axis (σ set to {sigma:.2f} mm)")
     ax.set_xlabel("error (mm)")
     ax.set_ylabel("samples")
-    fig.suptitle(f"mocaprig demo: scenario '{world.name}', seed {world.seed}, {world.seconds:g} s")
+    title = f"mocaprig demo: scenario '{world.name}', seed {world.seed}, {world.seconds:g} s"
+    if rec is not None:
+        title += (
+            f"\nsession.mcap: {rec['streams']} streams, {rec['messages']} messages, "
+            f"{rec['drops']} dropped, {rec['mb']:.0f} MB; D415 sync ok: {rec.get('d415_sync_ok')}; "
+            f"DAVIS {rec.get('davis_frames')} frames, {rec.get('davis_imu_samples')} IMU, "
+            f"{rec.get('davis_trigger_pulses')} trigger pulses "
+            f"({rec.get('trigger_frame_pairs')} paired with D415 master frames)"
+        )
+    fig.suptitle(title)
     fig.savefig(path, dpi=90)
 
 
@@ -186,6 +292,8 @@ def run_demo(
     seconds: float = 10.0,
     overwrite: bool = False,
     progress: Callable[[str], Progress | None] | None = None,
+    cameras: int = 2,
+    davis_dvs: bool = False,
 ) -> DemoReport:
     """Run the main job on the simulated rig and write ``report.json`` and ``summary.png``.
 
@@ -196,6 +304,8 @@ def run_demo(
         seconds: Session length (s).
         overwrite: Replace the outputs of an earlier demo in ``out_dir``.
         progress: Optional factory ``stage label -> (done, total)`` callback.
+        cameras: D415 count recorded (2 by default keeps the demo near a minute on 2 cores).
+        davis_dvs: Record DAVIS DVS events too (~20 s CPU per simulated second).
 
     Raises:
         RecordingError: the folder is not empty (without ``overwrite``) or a file disagrees.
@@ -218,8 +328,15 @@ def run_demo(
         seconds=seconds,
         overwrite=True,
         progress=progress,
+        devices=("davis", "d415", "syncbox"),
+        cameras=cameras,
+        davis_dvs=davis_dvs,
     )
     timings["simulate_s"] = time.monotonic() - t0
+    timings["record_s"] = sim.recording.elapsed_s if sim.recording is not None else 0.0
+    t0 = time.monotonic()
+    rec_figures = _recording_figures(out / "session" / "session.mcap")
+    timings["recording_checks_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     traj = read_c3d(sim.c3d_path, strip_subject_prefix=False)
@@ -242,6 +359,7 @@ def run_demo(
         * sim.scenario.noise.vicon_noise_scale
         * 1e3,
     }
+    figures["recording"] = rec_figures
     figures.update(_vicon_vs_truth(traj, truth))
     both = np.isfinite(csv.positions_m) & np.isfinite(traj.positions_m)
     gaps_agree = bool(np.array_equal(np.isfinite(csv.positions_m), np.isfinite(traj.positions_m)))
@@ -252,9 +370,9 @@ def run_demo(
     figures["timings_s"] = timings
 
     figure_path = out / "summary.png"
-    _summary_figure(figure_path, sim, truth, traj)
+    _summary_figure(figure_path, sim, truth, traj, rec_figures)
 
-    stages = {"simulate": "done", "vicon_io": "done"}
+    stages = {"simulate": "done", "record": "done", "vicon_io": "done"}
     stages.update({name: f"pending: {why}" for name, why in _PENDING_STAGES})
     report_path = out / "report.json"
     report = DemoReport(

@@ -89,6 +89,9 @@ class MockSyncBox:
             ``pulse_at_or_after`` with ``pacing="realtime"``); replaces ``listen_hz``.
         session_t0_ns: The ``time.monotonic_ns()`` reading that is session time 0 (default: the
             box's creation; pass the D415 rig's start to share its timeline).
+        session_clock_ns: The session time now (ns), replacing the host's monotonic clock:
+            e.g. an asap-paced mock D415 rig's ``now_ns`` (its simulated time), so that the box
+            counts the pulses of a simulated session however fast it is simulated.
 
     Raises:
         ValidationError: unknown fault or bad option.
@@ -107,6 +110,7 @@ class MockSyncBox:
         clock: DeviceClock | None = None,
         pulse_source: Callable[[int], int | None] | None = None,
         session_t0_ns: int | None = None,
+        session_clock_ns: Callable[[], int] | None = None,
     ) -> None:
         if fault is not None and fault not in SYNCBOX_FAULTS:
             msg = f"unknown sync box fault {fault!r}; choose one of {list(SYNCBOX_FAULTS)}"
@@ -139,6 +143,7 @@ class MockSyncBox:
         self._listen_cache: tuple[int | None, int, int | None] | None = None
         now_mono = time.monotonic_ns()
         self._t0_ns = now_mono if session_t0_ns is None else int(session_t0_ns)
+        self._session_clock = session_clock_ns
         self._boot_until_ns = now_mono + round(boot_delay_s * 1e9)
         self._booted = boot_delay_s == 0
         try:
@@ -206,6 +211,8 @@ class MockSyncBox:
     # -- clocks and pulses ------------------------------------------------------------------------
 
     def _session_ns(self) -> int:
+        if self._session_clock is not None:
+            return int(self._session_clock())
         return time.monotonic_ns() - self._t0_ns
 
     def _box_us(self, session_ns: int) -> int:
@@ -421,6 +428,7 @@ def mock_syncbox(
     board: str = "mock",
     pulse_source: Callable[[int], int | None] | None = None,
     session_t0_ns: int | None = None,
+    session_clock_ns: Callable[[], int] | None = None,
 ) -> MockSyncBox:
     """A running mock sync box (entry point ``mocaprig.mocks: syncbox``); close it when done.
 
@@ -433,6 +441,7 @@ def mock_syncbox(
         board: The banner's board token.
         pulse_source: The pulse train ``LISTEN`` counts (replaces ``listen_hz``; class doc).
         session_t0_ns: ``time.monotonic_ns()`` of session time 0 for ``pulse_source``.
+        session_clock_ns: The session time now (ns) instead of the monotonic clock (class doc).
 
     Returns:
         The box; ``.port`` is the path to open with pyserial.
@@ -446,4 +455,5 @@ def mock_syncbox(
         boot_delay_s=boot_delay_s,
         pulse_source=pulse_source,
         session_t0_ns=session_t0_ns,
+        session_clock_ns=session_clock_ns,
     )

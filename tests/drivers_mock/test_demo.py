@@ -16,7 +16,8 @@ def test_demo_command_reports_figures_against_truth(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "demo"
-    code = main(["demo", "--seconds", "4", "--seed", "11", "--out", str(out), "--json"])
+    args = ["demo", "--seconds", "3", "--seed", "11", "--cameras", "1"]
+    code = main([*args, "--out", str(out), "--json"])
     assert code == 0
     report = json.loads(capsys.readouterr().out)
     figures = report["figures"]
@@ -29,6 +30,19 @@ def test_demo_command_reports_figures_against_truth(
     assert 0.0 < figures["vicon_gap_fraction"] < 0.05
     assert figures["csv_vs_c3d_gaps_agree"] is True
     assert report["stages"]["simulate"] == "done"
+    assert report["stages"]["record"] == "done"
+    rec = figures["recording"]
+    assert rec["indexed"] is True
+    assert rec["drops"] == 0
+    assert rec["d415_sync_ok"] is True
+    assert rec["davis_events"] == 0  # DVS off by default
+    assert rec["davis_frames"] >= 70  # 25 fps APS for 3 s
+    assert rec["davis_imu_samples"] >= 2900  # 1 kHz
+    # Every master frame of the session has its trigger pulse on the DAVIS.
+    (frames,) = rec["d415_frames"].values()
+    assert frames >= 85
+    assert rec["trigger_frame_pairs"] == frames
+    assert rec["davis_trigger_pulses"] - frames in (0, 1, 2)
     assert report["stages"]["democap"].startswith("pending")
     assert Path(report["figure"]).stat().st_size > 10_000
     on_disk = json.loads(Path(report["report"]).read_text(encoding="utf-8"))

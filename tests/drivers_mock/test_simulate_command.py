@@ -16,7 +16,23 @@ from drivers_mock.truth import read_truth
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "d"
-    assert main(["-q", "simulate", "--seconds", "5", "--out", str(out), "--seed", "21"]) == 0
+    assert (
+        main(
+            [
+                "-q",
+                "simulate",
+                "--seconds",
+                "5",
+                "--out",
+                str(out),
+                "--seed",
+                "21",
+                "--devices",
+                "none",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -78,7 +94,19 @@ def test_simulate_json_reports_paths_seed_and_claps(tmp_path, capsys) -> None:
     out = tmp_path / "j"
     assert (
         main(
-            ["-q", "simulate", "--scenario", "tpose", "--seconds", "3", "--out", str(out), "--json"]
+            [
+                "-q",
+                "simulate",
+                "--scenario",
+                "tpose",
+                "--seconds",
+                "3",
+                "--out",
+                str(out),
+                "--json",
+                "--devices",
+                "none",
+            ]
         )
         == 0
     )
