@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from acquire.cli import add_json_flag, emit_json
-from acquire.errors import RecordingError, ValidationError
+from acquire.errors import DeviceError, RecordingError, ValidationError
 from acquire.recorder import Attachment, Recorder, StreamSource, record_sources, stop_on_signals
 from acquire.recording_format import (
     CameraCalibrationMsg,
@@ -37,6 +37,7 @@ from acquire.recording_format import (
     split_events,
     topic,
 )
+from acquire.rig_file import RigFile, load_rig_file
 
 __all__ = [
     "DavisSource",
@@ -454,7 +455,7 @@ def _mock_sources(
 
     sources: list[StreamSource] = []
     # "asap": the DAVIS simulator cannot render in real time on a small machine.
-    backend = load_mock_backend(scenario=scenario, seed=seed, pacing="asap")
+    backend = load_mock_backend(scenario=scenario, seed=seed, pacing="asap", seconds=seconds + 5.0)
     cam = Davis240C.open(backend=backend)
     stack.append(("davis/" + cam.serial, cam))
     sources.append(DavisSource(cam))
@@ -481,6 +482,117 @@ def _mock_sources(
         box.open()
         stack.append(("syncbox", box))
         sources.append(SyncBoxSource(box))
+    return sources
+
+
+_MOCK_D415_MAX = 4  # cameras of the simulated rig
+
+
+def _rig_sources(
+    rig: RigFile,
+    *,
+    scenario: str,
+    seed: int,
+    seconds: float,
+    stack: list[tuple[str, Any]],
+) -> list[StreamSource]:
+    """Open the devices ``rig`` lists (real ones, or the simulated rig's mocks when
+    ``rig.mock``), configured as the file says; opened devices go on ``stack`` (the caller
+    closes them, also when this raises).
+
+    Raises:
+        DeviceError: a listed device is not connected (the message lists what is) or cannot be
+            opened.
+        ValidationError: a mock rig file asks for more cameras than the simulated rig has.
+    """
+    from acquire import davis240c, depth_camera
+    from acquire.depth_camera import SyncMode
+
+    sources: list[StreamSource] = []
+    if rig.davis is not None:
+        entry = rig.davis
+        if rig.mock:
+            backend = davis240c.load_mock_backend(
+                scenario=scenario, seed=seed, pacing="asap", serial=entry.serial,
+                seconds=seconds + 5.0,
+            )  # fmt: skip
+            cam = davis240c.Davis240C.open(backend=backend, bias_preset=entry.bias_preset)
+        else:
+            found = davis240c.find_davis()
+            serials = sorted(d.serial or "?" for d in found)
+            if entry.serial not in serials:
+                msg = (
+                    f"DAVIS {entry.serial} listed in {rig.source} is not connected; connected: "
+                    f"{serials}; run `mocaprig devices`"
+                )
+                raise DeviceError(msg)
+            cam = davis240c.Davis240C.open(serial=entry.serial, bias_preset=entry.bias_preset)
+        stack.append(("davis/" + cam.serial, cam))
+        sources.append(DavisSource(cam))
+    if rig.d415:
+        if rig.mock:
+            if len(rig.d415) > _MOCK_D415_MAX:
+                msg = (
+                    f"{rig.source} lists {len(rig.d415)} D415s but the simulated rig has "
+                    f"{_MOCK_D415_MAX}; list at most {_MOCK_D415_MAX} with mock = true"
+                )
+                raise ValidationError(msg)
+            found_cams = depth_camera.open_cameras(
+                "mock", scenario=scenario, seed=seed, count=len(rig.d415), pacing="realtime",
+                seconds=seconds + 5.0,
+            )  # fmt: skip
+            # The mocks carry the simulated rig's serials: rig-file cameras map onto them in
+            # order (the rig-file serial is kept in the device metadata as rig_serial).
+            pairs = list(zip(rig.d415, found_cams, strict=True))
+        else:
+            found_cams = depth_camera.open_cameras("realsense")
+            by_serial = {c.info.serial: c for c in found_cams}
+            missing = [e.serial for e in rig.d415 if e.serial not in by_serial]
+            if missing:
+                for c in found_cams:
+                    c.close()
+                msg = (
+                    f"D415 {', '.join(missing)} listed in {rig.source} is not connected; "
+                    f"connected: {sorted(by_serial)}; run `mocaprig devices`"
+                )
+                raise DeviceError(msg)
+            wanted = {e.serial for e in rig.d415}
+            for c in found_cams:
+                if c.info.serial not in wanted:
+                    c.close()
+            pairs = [(e, by_serial[e.serial]) for e in rig.d415]
+        for _, d in pairs:
+            stack.append(("d415/" + d.info.serial, d))
+        # Slaves first: a slave configured after the master could miss its first pulses.
+        for e, d in sorted(pairs, key=lambda p: p[0].role == "master"):
+            mode = SyncMode.MASTER if e.role == "master" else SyncMode.SLAVE
+            d.configure(stream=e.stream, options=e.options, sync_mode=mode)
+        for e, d in pairs:
+            src = DepthCameraSource(d, stream=e.stream, options=e.options)
+            src.metadata[f"device/{src.name}"]["rig_serial"] = e.serial
+            src.metadata[f"device/{src.name}"]["rig_role"] = e.role
+            sources.append(src)
+    if rig.syncbox is not None:
+        from acquire.syncbox import SyncBox, open_mock_syncbox
+
+        sb = rig.syncbox
+        if rig.mock:
+            # The simulated master's pulses: its frame rate (or the file's rate without one).
+            master = rig.master
+            listen_hz = float(master.stream.fps if master is not None else sb.rate_hz)
+            mock_box = open_mock_syncbox(seed=seed, listen_hz=listen_hz)
+            stack.append(("syncbox-mock", mock_box))
+            port = str(mock_box.port)
+        else:
+            port = sb.port
+        box = SyncBox(port)
+        try:
+            box.open()
+        except DeviceError as err:
+            msg = f"sync box on {port} listed in {rig.source} cannot be opened: {err}"
+            raise DeviceError(msg) from err
+        stack.append(("syncbox", box))
+        sources.append(SyncBoxSource(box, mode=sb.mode, hz=sb.rate_hz, width_us=sb.width_us))
     return sources
 
 
@@ -608,25 +720,34 @@ def record(
     try:
         if sources is None:
             if rig is not None:
-                # Opening real devices from a rig file needs the rig-file schema
-                # (acquire/rig_file.py), which does not exist yet.
-                msg = (
-                    f"--rig {rig}: recording real devices from a rig file is not implemented "
-                    "yet (no rig-file schema in acquire/); use --mock"
+                rig_file = load_rig_file(rig)
+                sources = _rig_sources(
+                    rig_file, scenario=scenario, seed=seed, seconds=seconds, stack=stack
                 )
-                raise RecordingError(msg)
-            if not mock:
+                metadata["rig"] = rig_file.metadata()
+                metadata["session"] = {
+                    "mock": str(rig_file.mock).lower(),
+                    "rig_file": str(rig),
+                    "name": rig_file.session_name,
+                    "notes": rig_file.session_notes,
+                    **({"scenario": scenario, "seed": str(seed)} if rig_file.mock else {}),
+                }
+                attachments.append(
+                    Attachment("rig.toml", "application/toml", rig_file.text.encode("utf-8"))
+                )
+            elif not mock:
                 msg = "say what to record: --mock (simulated rig) or --rig RIG.toml"
                 raise ValidationError(msg)
-            sources = _mock_sources(
-                scenario=scenario,
-                seed=seed,
-                seconds=seconds,
-                cameras=cameras,
-                syncbox=syncbox,
-                stack=stack,
-            )
-            metadata["session"] = {"mock": "true", "scenario": scenario, "seed": str(seed)}
+            else:
+                sources = _mock_sources(
+                    scenario=scenario,
+                    seed=seed,
+                    seconds=seconds,
+                    cameras=cameras,
+                    syncbox=syncbox,
+                    stack=stack,
+                )
+                metadata["session"] = {"mock": "true", "scenario": scenario, "seed": str(seed)}
         summary = record_to_file(
             out,
             sources,
@@ -1003,17 +1124,21 @@ def register_record(subparsers: Any) -> None:
         subparsers,
         "record",
         "record a session into MCAP (live status line; Ctrl-C finishes the file)",
+        "  mocaprig record --rig rig.toml --seconds 60 --out session.mcap\n"
+        "  mocaprig record --rig dry-run.toml --seconds 5 --out dry.mcap   # mock = true\n"
         "  mocaprig record --mock --seconds 10 --out session.mcap\n"
         "  mocaprig record --mock --scenario default --cameras 2 --seconds 5 --out s.mcap\n"
         "  mocaprig record --mock --seconds 600 --split-seconds 60 --out long.mcap\n",
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--rig", type=Path, help="rig description (TOML) of the real devices")
+    src.add_argument(
+        "--rig", type=Path, help="rig file (TOML) listing the devices (docs/rig-file.md)"
+    )
     src.add_argument("--mock", action="store_true", help="record the simulated rig")
     p.add_argument("--scenario", default="default", help="mock scenario name")
     p.add_argument("--seed", type=int, default=0, help="mock world seed")
-    p.add_argument("--cameras", type=int, default=1, help="mock D415 count (0..4)")
-    p.add_argument("--no-syncbox", action="store_true", help="mock rig without the sync box")
+    p.add_argument("--cameras", type=int, default=1, help="--mock: D415 count (0..4)")
+    p.add_argument("--no-syncbox", action="store_true", help="--mock: without the sync box")
     p.add_argument("--seconds", type=float, required=True, help="recording length (s)")
     p.add_argument("--out", type=Path, required=True, help="output .mcap (never overwritten)")
     p.add_argument("--compression", choices=["lz4", "zstd", "none"], default="lz4")

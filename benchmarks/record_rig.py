@@ -1,90 +1,263 @@
-"""Recorder throughput on this machine: how many bytes/s and messages/s reach the file.
+"""Recorder throughput against the rig's data rate and the raw disk, in one run.
 
-Feeds the Recorder from producer threads as fast as ``put()`` accepts (never blocking), with
-pre-built payloads, and reports what was written, what was dropped, the peak of queued bytes and
-the process's peak RSS. Run: ``.venv/bin/python benchmarks/record_rig.py [--seconds 5]``.
+Cells (all with the recorder's defaults: lz4, 1 MiB chunks, one writer thread):
+
+1. **raw disk**: 4 MiB blocks written to the output folder, then ``fsync``: MB/s.
+2. **rig**: the mock rig of issue 5 for ``--seconds`` (default 30): 4 × D415 848×480@30 (IR
+   mono8 + depth 16UC1) and a DAVIS240C at 5 M events/s (1 kHz packets) + 240×180 frames at
+   25 Hz + IMU at 1 kHz (100 packets/s), each stream from its own producer thread paced on the
+   wall clock with pre-built payloads, ``put()`` never blocking. Per-stream drops, achieved
+   MB/s on disk (file bytes / wall time including the final ``fsync``).
+3. **saturation**: depth frames put as fast as the recorder accepts (5 s): the recorder's
+   ceiling in MB/s on disk, and its ratio to the raw disk speed of cell 1.
+4. **largest rig**: 10 s each of 1–4 × D415 848×480@30, 4 × 1280×720@30 and 4 × 848×480@90
+   (+ the DAVIS): the largest data rate that records with zero drops on this machine (the
+   per-stream queues hold ~2 s of frames, so a cell of 10 s shows a sustained deficit).
+
+Run: ``.venv/bin/python benchmarks/record_rig.py [--seconds 30] [--dir DIR]``. The last line
+is one JSON object (``drops_total``, ``mb_per_s``, ``disk_mb_per_s``, ``ratio_to_disk``, ...).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import platform
 import resource
 import tempfile
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from acquire.events import make_events
-from acquire.recorder import Recorder
-from acquire.recording_format import EventPacket, ImageMsg
+from acquire.recorder import Recorder, StreamHandle
+from acquire.recording_format import IMU_DTYPE, EventPacket, ImageMsg, ImuPacket
 
 
-def _depth_like(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+def _depth_like(rng: np.random.Generator, h: int, w: int) -> npt.NDArray[np.uint16]:
     yy, xx = np.mgrid[0:h, 0:w]
     z = 1500 + 2 * xx + yy + rng.normal(0, 4, (h, w))
     z[rng.random((h, w)) < 0.03] = 0
-    out: np.ndarray = z.astype(np.uint16)
+    out: npt.NDArray[np.uint16] = z.astype(np.uint16)
     return out
 
 
-def run(kind: str, compression: str, seconds: float) -> dict[str, float]:
-    rng = np.random.default_rng(0)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "bench.mcap"
-        rec = Recorder(path, compression=compression, min_free_disk_bytes=0)  # type: ignore[arg-type]
-        stop = threading.Event()
-        with rec:
-            if kind == "depth":
-                h = rec.add_stream("/d415/x/depth", ImageMsg, queue_messages=64)
-                msgs: list[Any] = [ImageMsg(_depth_like(rng, 480, 848), "16UC1") for _ in range(8)]
-            else:
-                h = rec.add_stream("/davis/x/events", EventPacket)
-                t = np.sort(rng.integers(0, 10_000, 10_000)).astype(np.int64)
-                ev = make_events(t, rng.integers(0, 240, t.size), rng.integers(0, 180, t.size),
-                                 t % 2)  # fmt: skip
-                msgs = [EventPacket(ev, seq=i) for i in range(8)]
+def _ir_like(rng: np.random.Generator, h: int, w: int) -> npt.NDArray[np.uint8]:
+    img = rng.normal(60, 12, (h, w)).clip(0, 255)
+    for _ in range(40):  # saturated marker blobs
+        y, x = rng.integers(5, h - 5), rng.integers(5, w - 5)
+        img[y - 3 : y + 3, x - 3 : x + 3] = 255
+    return img.astype(np.uint8)
 
-            def produce() -> None:
-                i = 0
-                while not stop.is_set():
-                    rec.put(h, msgs[i % len(msgs)])
-                    i += 1
-                    if i % 4 == 0:
-                        time.sleep(0.0005)
 
-            th = threading.Thread(target=produce)
-            t0 = time.perf_counter()
+@dataclass(frozen=True)
+class _Stream:
+    topic: str
+    kind: type
+    hz: float
+    payloads: list[Any]
+    queue_messages: int = 4096
+
+
+def _rig_streams(rng: np.random.Generator, cams: int, w: int, h: int, fps: int) -> list[_Stream]:
+    out: list[_Stream] = []
+    for c in range(cams):
+        ir = [ImageMsg(_ir_like(rng, h, w), "mono8") for _ in range(4)]
+        depth = [ImageMsg(_depth_like(rng, h, w), "16UC1") for _ in range(4)]
+        out.append(_Stream(f"/d415/cam{c}/ir", ImageMsg, fps, ir, 64))
+        out.append(_Stream(f"/d415/cam{c}/depth", ImageMsg, fps, depth, 64))
+    n_ev = 5000  # 5 M events/s in 1 kHz packets
+    packets = []
+    for i in range(8):
+        t = np.sort(rng.integers(0, 1000, n_ev)).astype(np.int64) + i * 1000
+        ev = make_events(t, rng.integers(0, 240, n_ev), rng.integers(0, 180, n_ev), t % 2)
+        packets.append(EventPacket(ev, seq=i))
+    out.append(_Stream("/davis/x/events", EventPacket, 1000.0, packets))
+    frames = [ImageMsg(rng.integers(0, 1024, (180, 240)).astype(np.uint16), "mono16")]
+    out.append(_Stream("/davis/x/frame", ImageMsg, 25.0, frames, 256))
+    imu = np.zeros(10, IMU_DTYPE)
+    imu["t"] = np.arange(10) * 1000
+    out.append(_Stream("/davis/x/imu", ImuPacket, 100.0, [ImuPacket(imu, 0)]))
+    return out
+
+
+def _payload_rate(streams: list[_Stream]) -> float:
+    """The rig's data rate in MB/s of encoded payload (what the recorder must write)."""
+    return sum(s.hz * float(np.mean([len(p.encode()) for p in s.payloads])) for s in streams) / 1e6
+
+
+def raw_disk_mb_per_s(folder: Path, total_mb: int = 768) -> float:
+    """Raw sequential write speed with fsync (MB/s)."""
+    block = np.random.default_rng(1).integers(0, 256, 4 << 20, dtype=np.uint8).tobytes()
+    path = folder / "raw_disk.bin"
+    n = max(1, total_mb // 4)
+    t0 = time.perf_counter()
+    with path.open("wb") as f:
+        for _ in range(n):
+            f.write(block)
+        f.flush()
+        os.fsync(f.fileno())
+    wall = time.perf_counter() - t0
+    path.unlink()
+    return n * len(block) / wall / 1e6
+
+
+def record_cell(folder: Path, name: str, streams: list[_Stream], seconds: float) -> dict[str, Any]:
+    """Record paced producers for ``seconds``; drops per stream and MB/s on disk (with fsync)."""
+    path = folder / f"{name}.mcap"
+    rec = Recorder(path, min_free_disk_bytes=0)
+    stop = threading.Event()
+    t0 = time.perf_counter()
+    with rec:
+        handles: list[StreamHandle] = [
+            rec.add_stream(s.topic, s.kind, queue_messages=s.queue_messages) for s in streams
+        ]
+
+        def produce(s: _Stream, h: StreamHandle) -> None:
+            period = 1.0 / s.hz
+            start = time.perf_counter()
+            i = 0
+            while not stop.is_set():
+                due = start + i * period
+                now = time.perf_counter()
+                if due > now:
+                    time.sleep(min(due - now, 0.05))
+                    continue
+                rec.put(h, s.payloads[i % len(s.payloads)], sequence=i)
+                i += 1
+
+        threads = [
+            threading.Thread(target=produce, args=(s, h), daemon=True)
+            for s, h in zip(streams, handles, strict=True)
+        ]
+        t0 = time.perf_counter()
+        for th in threads:
             th.start()
-            time.sleep(seconds)
-            stop.set()
+        time.sleep(seconds)
+        stop.set()
+        for th in threads:
             th.join()
-        wall = time.perf_counter() - t0
-        st = {s.topic: s for s in rec.status().streams}[h.topic]
-        size = path.stat().st_size
-        payload = st.bytes_written
+    with path.open("rb+") as f:
+        os.fsync(f.fileno())
+    wall = time.perf_counter() - t0
+    size = path.stat().st_size
+    st = {s.topic: s for s in rec.status().streams}
+    path.unlink()
+    per_stream = {s.topic: st[s.topic].dropped for s in streams}
+    received = sum(st[s.topic].received for s in streams)
     return {
-        "written_msgs_per_s": st.written / wall,
-        "payload_MB_per_s": payload / wall / 1e6,
-        "file_MB_per_s": size / wall / 1e6,
-        "drop_fraction": st.dropped / max(st.received, 1),
-        "peak_queued_MB": rec.peak_queued_bytes / 1e6,
-        "memory_bound_MB": rec.memory_bound_bytes / 1e6,
+        "seconds": round(wall, 2),
+        "payload_mb_per_s_nominal": round(_payload_rate(streams), 1),
+        "payload_mb_per_s_written": round(
+            sum(st[s.topic].bytes_written for s in streams) / wall / 1e6, 1
+        ),
+        "mb_per_s": round(size / wall / 1e6, 1),
+        "drops_total": int(sum(per_stream.values())),
+        "drop_fraction": round(sum(per_stream.values()) / max(received, 1), 4),
+        "drops_per_stream": per_stream,
+        "peak_queued_mb": round(rec.peak_queued_bytes / 1e6, 1),
     }
+
+
+def saturation_cell(folder: Path, seconds: float) -> dict[str, float]:
+    """Depth frames as fast as ``put()`` accepts: the recorder's ceiling on disk (MB/s)."""
+    rng = np.random.default_rng(0)
+    path = folder / "saturate.mcap"
+    rec = Recorder(path, min_free_disk_bytes=0)
+    stop = threading.Event()
+    msgs = [ImageMsg(_depth_like(rng, 480, 848), "16UC1") for _ in range(8)]
+    with rec:
+        h = rec.add_stream("/d415/x/depth", ImageMsg, queue_messages=64)
+
+        def produce() -> None:
+            i = 0
+            while not stop.is_set():
+                if not rec.put(h, msgs[i % len(msgs)]):
+                    time.sleep(0.001)  # queue full: let the writer run
+                i += 1
+
+        th = threading.Thread(target=produce)
+        t0 = time.perf_counter()
+        th.start()
+        time.sleep(seconds)
+        stop.set()
+        th.join()
+    with path.open("rb+") as f:
+        os.fsync(f.fileno())
+    wall = time.perf_counter() - t0
+    size = path.stat().st_size
+    path.unlink()
+    return {"mb_per_s": round(size / wall / 1e6, 1)}
+
+
+_CANDIDATES = (
+    (1, 848, 480, 30),
+    (2, 848, 480, 30),
+    (3, 848, 480, 30),
+    (4, 848, 480, 30),
+    (4, 1280, 720, 30),
+    (4, 848, 480, 90),
+)
+"""Rigs tried for "the largest that holds" (D415 count, width, height, fps; + the DAVIS)."""
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument("--seconds", type=float, default=30.0, help="length of the rig cell (s)")
+    ap.add_argument("--cell-seconds", type=float, default=10.0, help="other cells (s)")
+    ap.add_argument("--dir", type=Path, default=None, help="where to write (default: a temp dir)")
     args = ap.parse_args()
-    for kind in ("depth", "events"):
-        for comp in ("lz4", "zstd", "none"):
-            r = run(kind, comp, args.seconds)
-            print(kind, comp, " ".join(f"{k}={v:.3g}" for k, v in r.items()))
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory(dir=args.dir) as d:
+        folder = Path(d)
+        disk = raw_disk_mb_per_s(folder)
+        print(f"raw disk (4 MiB blocks + fsync): {disk:.0f} MB/s", flush=True)
+        rng = np.random.default_rng(0)
+        rig = record_cell(folder, "rig", _rig_streams(rng, 4, 848, 480, 30), args.seconds)
+        print("rig 4x848x480@30 + DAVIS 5 Mev/s:", json.dumps(rig), flush=True)
+        sat = saturation_cell(folder, 5.0)
+        print(f"saturation (depth frames, lz4): {sat['mb_per_s']} MB/s", flush=True)
+        rigs: dict[str, dict[str, Any]] = {}
+        for n, w, h, fps in _CANDIDATES:
+            key = f"{n}x{w}x{h}@{fps}"
+            cell = record_cell(folder, key, _rig_streams(rng, n, w, h, fps), args.cell_seconds)
+            rigs[key] = cell
+            print(key, json.dumps(cell), flush=True)
+    holding = [k for k, v in rigs.items() if v["drops_total"] == 0]
+    largest = max(holding, key=lambda k: rigs[k]["payload_mb_per_s_nominal"], default=None)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
-    print(f"peak RSS {rss:.0f} MB")
+    result = {
+        "benchmark": "record_rig",
+        "machine": f"{os.cpu_count()} cores {platform.machine()}, load {load_before[0]:.1f}",
+        "load_avg_1min_before": round(load_before[0], 1),
+        "load_avg_1min_after": round(os.getloadavg()[0], 1),
+        "rig": "4x D415 848x480@30 IR+depth, DAVIS 5 M ev/s + frames 25 Hz + IMU 1 kHz",
+        "rig_seconds": rig["seconds"],
+        "drops_total": rig["drops_total"],
+        "drops_per_stream": rig["drops_per_stream"],
+        "payload_mb_per_s_nominal": rig["payload_mb_per_s_nominal"],
+        "mb_per_s": rig["mb_per_s"],
+        "disk_mb_per_s": round(disk, 1),
+        "recorder_max_mb_per_s": sat["mb_per_s"],
+        "ratio_to_disk": round(sat["mb_per_s"] / disk, 2),
+        "largest_rig_that_holds": largest,
+        "rigs": {
+            k: {
+                "drops_total": v["drops_total"],
+                "mb_per_s": v["mb_per_s"],
+                "payload_mb_per_s_nominal": v["payload_mb_per_s_nominal"],
+            }
+            for k, v in rigs.items()
+        },
+        "peak_rss_mb": round(rss),
+    }
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

@@ -298,14 +298,16 @@ def test_record_requires_a_source(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert "--rig --mock is required" in capsys.readouterr().err
 
 
-def test_record_rig_is_refused_clearly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_record_rig_without_format_version_is_refused_clearly(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     rig = tmp_path / "rig.toml"
     rig.write_text("[davis]\n")
     assert (
         main(["record", "--rig", str(rig), "--seconds", "1", "--out", str(tmp_path / "a.mcap")])
         == 1
     )
-    assert "not implemented yet" in capsys.readouterr().err
+    assert "'format_version' is missing" in capsys.readouterr().err
 
 
 def test_reader_refuses_a_newer_major_format(tmp_path: Path) -> None:
