@@ -4,6 +4,7 @@ Usage::
 
     with Recording(Path("session.mcap")) as rec:
         ev = rec.events("/davis/00000042/events", start_ns=t0, end_ns=t1)   # EVENT_DTYPE
+        ev, t_ns = rec.events_ns("/davis/imported/events")   # + exact times as stored (ns)
         for log_time_ns, img in rec.images("/d415/1234/depth"):             # ImageMsg
             ...
     summary = info(Path("session.mcap"))       # topics, counts, rates, drops, gaps, chunks
@@ -372,6 +373,27 @@ class Recording:
         self._expect(topic, EventPacket)
         parts = [p.events for _, p in self.decoded(topic, start_ns=start_ns, end_ns=end_ns)]
         return np.concatenate(parts) if parts else np.empty(0, EVENT_DTYPE)
+
+    def events_ns(
+        self, topic: str, *, start_ns: int | None = None, end_ns: int | None = None
+    ) -> tuple[npt.NDArray[np.void], npt.NDArray[np.int64]]:
+        """All events of an event topic with their exact times as stored (ns).
+
+        Returns ``(events, t_ns)``: ``events`` as from :meth:`events` (t in µs) and ``t_ns``
+        (int64 ns, same order), with ``events["t"] == t_ns // 1000``. The ns times carry the
+        sub-µs digits of imported sources (RPG text has 9 decimals); for events recorded from a
+        DAVIS (µs clock) ``t_ns == events["t"] * 1000``. ``start_ns``/``end_ns`` select by
+        ``log_time`` as in :meth:`events`.
+        """
+        self._expect(topic, EventPacket)
+        evs: list[npt.NDArray[np.void]] = []
+        tns: list[npt.NDArray[np.int64]] = []
+        for _, p in self.decoded(topic, start_ns=start_ns, end_ns=end_ns):
+            evs.append(p.events)
+            tns.append(p.t_ns if p.t_ns is not None else p.events["t"] * 1000)
+        if not evs:
+            return np.empty(0, EVENT_DTYPE), np.empty(0, np.int64)
+        return np.concatenate(evs), np.concatenate(tns)
 
     def imu(
         self, topic: str, *, start_ns: int | None = None, end_ns: int | None = None

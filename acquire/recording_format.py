@@ -77,6 +77,8 @@ PROFILE: Final = ""
 EVENT_ENCODING: Final = "mono"
 #: The longest span of one packet (the 32-bit ns offset): 4,294,967 µs; longer packets are split.
 MAX_EVENT_PACKET_SPAN_US: Final = (2**32 - 1) // 1000
+# Event times are int64 ns once decoded: a packet's time_base + 32-bit offset must fit.
+_MAX_TIME_BASE_NS: Final = 2**63 - 1
 
 #: IMU samples, identical to ``acquire.davis240c_decode.IMU_SAMPLE_DTYPE`` (64 B, packed LE).
 IMU_DTYPE: Final = np.dtype(
@@ -325,6 +327,15 @@ class EventPacket:
         height: Sensor rows.
         seq: Packet counter of this stream (0, 1, ...; a gap means a dropped packet).
         frame_id: Device name, e.g. ``davis_00000042``.
+        t_ns: Optional exact event times (ns, int64, same order as ``events``) for sources finer
+            than the µs of :data:`~acquire.events.EVENT_DTYPE` (e.g. imported RPG text, 9
+            decimals). When given, ``events["t"] == t_ns // 1000`` (floor) must hold and
+            :meth:`encode` stores these ns times; when ``None`` it stores ``events["t"]`` × 1000.
+            :meth:`decode` always fills it from the stored ns offsets.
+
+    Raises:
+        ValidationError: ``t_ns`` is not a 1-D integer array of the events' length, or
+            disagrees with ``events["t"]``.
     """
 
     SCHEMA: ClassVar[SchemaDef] = _project_schema("EventPacket")
@@ -334,22 +345,64 @@ class EventPacket:
     height: int = 180
     seq: int = 0
     frame_id: str = ""
+    t_ns: npt.NDArray[np.int64] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.t_ns is None:
+            return
+        ev = check_events(self.events)
+        t_ns = np.asarray(self.t_ns)
+        if t_ns.ndim != 1 or t_ns.shape[0] != ev.shape[0] or t_ns.dtype.kind not in "iu":
+            msg = (
+                f"EventPacket t_ns must be a 1-D integer array of {ev.shape[0]} ns times (one "
+                f"per event), got {t_ns.dtype} {t_ns.shape}; pass t_ns=None for µs-only events"
+            )
+            raise ValidationError(msg)
+        t_ns = t_ns.astype(np.int64, copy=False)
+        bad = np.flatnonzero(ev["t"] != t_ns // 1000)
+        if bad.size:
+            i = int(bad[0])
+            msg = (
+                f"EventPacket t_ns disagrees with events['t'] at {bad.size} event(s), first at "
+                f"index {i}: t_ns={int(t_ns[i])} ns but t={int(ev['t'][i])} µs; "
+                "events['t'] must equal t_ns // 1000 (floor)"
+            )
+            raise ValidationError(msg)
+        object.__setattr__(self, "t_ns", t_ns)
 
     @property
     def nbytes(self) -> int:
-        return int(self.events.nbytes) + 64
+        extra = 0 if self.t_ns is None else int(self.t_ns.nbytes)
+        return int(self.events.nbytes) + extra + 64
 
     def encode(self) -> bytes:
         ev = check_events(self.events)
         if ev.size:
-            t0 = int(ev["t"].min())
-            dt_ns = (ev["t"] - t0) * 1000
-            if t0 < 0 or int(dt_ns.max()) >= 2**32:
-                msg = (
-                    f"event packet spans {int(dt_ns.max()) // 1000} µs from t={t0} µs; it must "
-                    f"start at t >= 0 and span at most {MAX_EVENT_PACKET_SPAN_US} µs "
-                    "(use split_events)"
-                )
+            if self.t_ns is None:
+                t_us = ev["t"]
+                t0_us, hi_us = int(t_us.min()), int(t_us.max())
+                if t0_us < 0 or hi_us - t0_us > MAX_EVENT_PACKET_SPAN_US:
+                    msg = (
+                        f"event packet spans {hi_us - t0_us} µs from t={t0_us} µs; it must "
+                        f"start at t >= 0 and span at most {MAX_EVENT_PACKET_SPAN_US} µs "
+                        "(use split_events)"
+                    )
+                    raise ValidationError(msg)
+                t0_ns = t0_us * 1000
+                dt_ns = (t_us - t0_us) * 1000
+            else:
+                t_ns = self.t_ns
+                t0_ns, hi_ns = int(t_ns.min()), int(t_ns.max())
+                if t0_ns < 0 or hi_ns - t0_ns >= 2**32:
+                    msg = (
+                        f"event packet spans {hi_ns - t0_ns} ns from t_ns={t0_ns} ns; it must "
+                        "start at t_ns >= 0 and span less than 2**32 ns "
+                        f"({MAX_EVENT_PACKET_SPAN_US} µs; split the events and t_ns alike)"
+                    )
+                    raise ValidationError(msg)
+                dt_ns = t_ns - t0_ns
+            if t0_ns + 2**32 > _MAX_TIME_BASE_NS:
+                msg = f"event time base {t0_ns} ns is beyond the int64 ns range of the format"
                 raise ValidationError(msg)
             if int(ev["x"].max()) >= 2**16 or int(ev["y"].max()) >= 2**15:
                 msg = "event y must be < 32768 for the mono encoding"
@@ -361,7 +414,7 @@ class EventPacket:
                 | dt_ns.astype(np.uint64)
             )
             blob = words.astype("<u8").tobytes()
-            time_base_ns = t0 * 1000
+            time_base_ns = t0_ns
         else:
             blob, time_base_ns = b"", 0
         pb = _PB["EventPacket"](
@@ -378,6 +431,11 @@ class EventPacket:
 
     @classmethod
     def decode(cls, data: bytes) -> Self:
+        """Decode a payload; ``t_ns = time_base + offset`` exactly, ``events["t"] = t_ns // 1000``.
+
+        Files written before ``t_ns`` existed hold µs-derived times (``time_base`` and every
+        offset multiples of 1000 ns), so ``events["t"]`` is what it always was.
+        """
         pb = _parse(_PB["EventPacket"], data, "mocaprig.EventPacket")
         if pb.encoding != EVENT_ENCODING or pb.is_bigendian:
             msg = f"event encoding {pb.encoding!r} (big-endian={pb.is_bigendian}) is not 'mono' LE"
@@ -385,15 +443,21 @@ class EventPacket:
         if len(pb.events) % 8:
             msg = f"event blob of {len(pb.events)} bytes is not a multiple of 8"
             raise RecordingError(msg)
+        time_base_ns = int(pb.time_base)
+        if time_base_ns + 2**32 > _MAX_TIME_BASE_NS:
+            msg = (
+                f"event packet time_base {time_base_ns} ns is beyond the int64 ns range; "
+                "the file is corrupt or not written by mocaprig"
+            )
+            raise RecordingError(msg)
         words = np.frombuffer(pb.events, dtype="<u8")
+        t_ns = (words & np.uint64(0xFFFFFFFF)).astype(np.int64) + np.int64(time_base_ns)
         out = np.empty(words.size, dtype=EVENT_DTYPE)
-        out["t"] = (words & np.uint64(0xFFFFFFFF)).astype(np.int64) // 1000 + (
-            int(pb.time_base) // 1000
-        )
+        out["t"] = t_ns // 1000
         out["x"] = (words >> np.uint64(32)) & np.uint64(0xFFFF)
         out["y"] = (words >> np.uint64(48)) & np.uint64(0x7FFF)
         out["p"] = words >> np.uint64(63)
-        return cls(out, int(pb.width), int(pb.height), int(pb.seq), str(pb.frame_id))
+        return cls(out, int(pb.width), int(pb.height), int(pb.seq), str(pb.frame_id), t_ns)
 
 
 # --------------------------------------------------------------------------------------------

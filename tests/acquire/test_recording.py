@@ -181,6 +181,20 @@ def test_recover_keeps_everything_of_a_finished_file(
     assert [(s.topic, s.messages) for s in a.streams] == [(s.topic, s.messages) for s in b.streams]
 
 
+def test_events_ns_of_a_recorded_topic_are_the_us_times_times_1000(
+    sample: tuple[Path, dict[str, object]],
+) -> None:
+    path, truth = sample
+    with Recording(path) as r:
+        ev, t_ns = r.events_ns(str(truth["ev_topic"]), start_ns=2 * 10**8)
+        ev_all = r.events(str(truth["ev_topic"]), start_ns=2 * 10**8)
+        none_ev, none_t = r.events_ns(str(truth["ev_topic"]), start_ns=10**15)
+    assert ev.size > 0
+    np.testing.assert_array_equal(ev, ev_all)
+    np.testing.assert_array_equal(t_ns, ev["t"] * 1000)
+    assert (none_ev.size, none_t.size, str(none_t.dtype)) == (0, 0, "int64")
+
+
 def test_export_txt_and_import_round_trip(
     sample: tuple[Path, dict[str, object]], tmp_path: Path
 ) -> None:
@@ -189,9 +203,11 @@ def test_export_txt_and_import_round_trip(
     assert main(["export", str(path), "--topic", str(truth["ev_topic"]), "--format", "txt",
                  "--out", str(txt)]) == 0  # fmt: skip
     lines = txt.read_text().splitlines()
-    assert lines[0] == "240 180"
     ev0 = truth["events"][0]  # type: ignore[index]
-    assert lines[1] == f"{ev0['t'] / 1e6:.6f} {ev0['x']} {ev0['y']} {ev0['p']}"
+    # No header line (the RPG events.txt has none); µs times written with 9 decimals.
+    assert len(lines) == truth["events"].size  # type: ignore[attr-defined]
+    t0 = int(ev0["t"])
+    assert lines[0] == f"{t0 // 10**6}.{t0 % 10**6:06d}000 {ev0['x']} {ev0['y']} {ev0['p']}"
     back = tmp_path / "back.mcap"
     assert main(["import-events", str(txt), "--out", str(back)]) == 0
     with Recording(back) as r:
@@ -210,8 +226,11 @@ def test_import_reads_rpg_text_with_ns_digits(tmp_path: Path) -> None:
                  "--height", "260"]) == 0  # fmt: skip
     with Recording(out) as r:
         ev = r.events("/davis/imported/events")
+        ev_ns, t_ns = r.events_ns("/davis/imported/events")
         (p0, *_) = [m.decode() for m in r.messages("/davis/imported/events")]
     assert ev["t"].tolist() == [3811, 3820, 1468940293982000]
+    assert t_ns.tolist() == [3_811_000, 3_820_001, 1_468_940_293_982_000_000]
+    np.testing.assert_array_equal(ev_ns, ev)
     assert (p0.width, p0.height) == (346, 260)
 
 
@@ -326,27 +345,75 @@ def test_reader_refuses_a_newer_major_format(tmp_path: Path) -> None:
 @settings(max_examples=25, deadline=None)
 @given(
     st.lists(
-        st.tuples(st.integers(0, 10**13), st.integers(0, 239), st.integers(0, 179), st.booleans()),
+        st.tuples(
+            st.integers(-(10**16), 10**16),  # ns, both signs, up to ~116 days
+            st.integers(0, 239),
+            st.integers(0, 179),
+            st.booleans(),
+        ),
         min_size=1,
         max_size=50,
-    )
+    ),
+    st.booleans(),
 )
-def test_rpg_text_round_trips_exactly(rows: list[tuple[int, int, int, bool]]) -> None:
+def test_rpg_text_round_trips_exactly_to_the_ns(
+    rows: list[tuple[int, int, int, bool]], header: bool
+) -> None:
     import io
     import tempfile
 
-    from acquire.commands_record import export_events_txt, read_events_txt
+    from acquire.commands_record import _read_events_txt_lines, export_events_txt, read_events_txt
 
     arr = np.asarray(rows, dtype=np.int64).reshape(-1, 4)
-    ev = make_events(np.sort(arr[:, 0]), arr[:, 1], arr[:, 2], arr[:, 3])
+    t_ns = np.sort(arr[:, 0])
+    ev = make_events(t_ns // 1000, arr[:, 1], arr[:, 2], arr[:, 3])
     buf = io.StringIO()
-    export_events_txt(ev, buf, width=240, height=180)
+    export_events_txt(ev, buf, t_ns=t_ns, header=(240, 180) if header else None)
+    assert buf.getvalue().count("\n") == ev.size + header
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "e.txt"
         p.write_text(buf.getvalue())
-        back, w, h = read_events_txt(p)
-    assert (w, h) == (240, 180)
-    np.testing.assert_array_equal(back, ev)
+        back = read_events_txt(p)
+        slow = _read_events_txt_lines(p)  # the line-by-line reader agrees with the fast path
+    assert (back.width, back.height) == ((240, 180) if header else (None, None))
+    np.testing.assert_array_equal(back.t_ns, t_ns)
+    np.testing.assert_array_equal(back.events, ev)
+    np.testing.assert_array_equal(slow.t_ns, t_ns)
+    np.testing.assert_array_equal(slow.events, ev)
+
+
+@pytest.mark.parametrize(
+    ("text", "t_ns"),
+    [
+        ("0.000011001", 11001),
+        ("12", 12_000_000_000),
+        ("12.", 12_000_000_000),
+        (".5", 500_000_000),
+        ("0.003811", 3_811_000),
+        ("0.0000110010000", 11001),  # zeros beyond the 9th decimal are exact
+        ("1.5e-3", 1_500_000),
+        ("-0.000000001", -1),
+        ("1468940293.982000", 1_468_940_293_982_000_000),
+    ],
+)
+def test_rpg_text_times_parse_exactly(tmp_path: Path, text: str, t_ns: int) -> None:
+    from acquire.commands_record import read_events_txt
+
+    p = tmp_path / "e.txt"
+    p.write_text(f"{text} 1 2 1\n")
+    got = read_events_txt(p)
+    assert got.t_ns.tolist() == [t_ns]
+    assert got.events["t"].tolist() == [t_ns // 1000]  # floor, also below zero
+
+
+@pytest.mark.parametrize("text", ["0.0000000011", "1e-10", "0x10", "1_0", "nan"])
+def test_rpg_text_refuses_times_finer_than_ns_or_not_decimal(tmp_path: Path, text: str) -> None:
+    from acquire.commands_record import read_events_txt
+
+    p = tmp_path / "e.txt"
+    p.write_text(f"0.1 1 2 1\n{text} 1 2 1\n")
+    with pytest.raises(RecordingError, match=r"e\.txt:2: .*t in s with at most 9 decimals"):
+        read_events_txt(p)
 
 
 def test_put_from_many_threads_counts_every_message(tmp_path: Path) -> None:
@@ -371,3 +438,32 @@ def test_put_from_many_threads_counts_every_message(tmp_path: Path) -> None:
             assert s.drops == 0  # 200 messages fit the default 4096-message queue
             assert s.messages == n_each
             assert s.counter_gaps == 0
+
+
+@pytest.mark.parametrize(
+    ("text", "fast"),
+    [
+        ("240 180\r\n0.003811 1 2 1\r\n0.000011001 3 4 0\r\n7 5 6 1\r\n", True),
+        ("# c\n\n0.003811 1 2 1\n0.000011001 3 4 0\n7 5 6 1\n", True),
+        ("240 180\n0.003811\t1 2 1\n0.000011001  3 4 0\n+7 5 6 1 \n", False),
+        ("240 180\n0.003811 1 2 1\n1.1e-5 3 4 0\n7 5 6 1\n", False),
+    ],
+)
+def test_fast_and_line_readers_agree_on_layout_variants(
+    tmp_path: Path, text: str, fast: bool
+) -> None:
+    from acquire.commands_record import (
+        _read_events_txt_fast,
+        _read_events_txt_lines,
+        read_events_txt,
+    )
+
+    p = tmp_path / "e.txt"
+    p.write_bytes(text.encode())
+    got = read_events_txt(p)
+    ref = _read_events_txt_lines(p)
+    expected_ns = [3_811_000, 11_000 if "1.1e-5" in text else 11_001, 7_000_000_000]
+    assert got.t_ns.tolist() == ref.t_ns.tolist() == expected_ns
+    np.testing.assert_array_equal(got.events, ref.events)
+    assert (got.width, got.height) == (ref.width, ref.height)
+    assert (_read_events_txt_fast(p.read_bytes()) is not None) == fast

@@ -53,6 +53,86 @@ def test_event_packet_round_trips_exactly(rows: list[tuple[int, int, int, int]],
     assert (back.width, back.height, back.seq, back.frame_id) == (240, 180, 7, "davis_x")
 
 
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 2**32 - 1), st.integers(0, 65535), st.integers(0, 32767),
+                  st.integers(0, 1)),
+        min_size=1,
+        max_size=200,
+    ),
+    st.integers(0, 2**62),
+)  # fmt: skip
+def test_event_packet_ns_times_round_trip_exactly(
+    rows: list[tuple[int, int, int, int]], t0_ns: int
+) -> None:
+    arr = np.asarray(rows, dtype=np.int64).reshape(-1, 4)
+    dt = arr[:, 0] - arr[:, 0].min()  # any span below 2**32 ns, any sub-µs digits
+    t_ns = dt + t0_ns
+    ev = make_events(t_ns // 1000, arr[:, 1], arr[:, 2], arr[:, 3])
+    back = EventPacket.decode(EventPacket(ev, 240, 180, 3, "d", t_ns=t_ns).encode())
+    assert back.t_ns is not None
+    assert back.t_ns.dtype == np.int64
+    np.testing.assert_array_equal(back.t_ns, t_ns)
+    np.testing.assert_array_equal(back.events, ev)
+    np.testing.assert_array_equal(back.events["t"], back.t_ns // 1000)
+
+
+def _legacy_encode(ev: np.ndarray) -> bytes:
+    """The µs-only encoder as it was before ``t_ns`` (ns = µs × 1000, time_base = t0 × 1000)."""
+    from acquire.recording_format import _PB
+
+    t0 = int(ev["t"].min())
+    words = (
+        (ev["p"].astype(np.uint64) & np.uint64(1)) << np.uint64(63)
+        | ev["y"].astype(np.uint64) << np.uint64(48)
+        | ev["x"].astype(np.uint64) << np.uint64(32)
+        | ((ev["t"] - t0) * 1000).astype(np.uint64)
+    )
+    pb = _PB["EventPacket"](width=240, height=180, time_base=t0 * 1000, encoding="mono",
+                            events=words.astype("<u8").tobytes())  # fmt: skip
+    return bytes(pb.SerializeToString())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_files_written_before_t_ns_decode_as_before(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, MAX_EVENT_PACKET_SPAN_US, 500)) + int(rng.integers(0, 2**40))
+    ev = make_events(t, rng.integers(0, 240, t.size), rng.integers(0, 180, t.size), t % 2)
+    old = _legacy_encode(ev)
+    # µs packets are still written byte for byte as before (the format did not change) ...
+    assert EventPacket(ev).encode() == old
+    # ... and old payloads decode to the same µs (old decoder: offset // 1000 + time_base // 1000;
+    # both are multiples of 1000 ns, so that equals the floor of the ns sum the decoder now takes).
+    back = EventPacket.decode(old)
+    np.testing.assert_array_equal(back.events, ev)
+    assert back.t_ns is not None
+    np.testing.assert_array_equal(back.t_ns, t * 1000)
+
+
+def test_event_packet_t_ns_must_agree_with_the_events() -> None:
+    ev = make_events([0, 11], [1, 2], [3, 4], [1, 0])
+    EventPacket(ev, t_ns=np.array([999, 11_001]))  # floor(999 / 1000) == 0: fine
+    with pytest.raises(ValidationError, match=r"index 1: t_ns=12000 ns but t=11 µs"):
+        EventPacket(ev, t_ns=np.array([0, 12_000]))
+    with pytest.raises(ValidationError, match="floor"):
+        EventPacket(ev, t_ns=np.array([-1, 11_000]))  # floor(-1 / 1000) == -1, not 0
+    with pytest.raises(ValidationError, match="one per event"):
+        EventPacket(ev, t_ns=np.array([0]))
+    with pytest.raises(ValidationError, match="integer"):
+        EventPacket(ev, t_ns=np.array([0.0, 11_001.0]))
+
+
+def test_event_packet_ns_span_limit() -> None:
+    ev = make_events([0, (2**32 - 1) // 1000], [0, 0], [0, 0], [0, 0])
+    EventPacket(ev, t_ns=np.array([0, 2**32 - 1])).encode()
+    ev2 = make_events([0, 2**32 // 1000], [0, 0], [0, 0], [0, 0])
+    with pytest.raises(ValidationError, match="2\\*\\*32 ns"):
+        EventPacket(ev2, t_ns=np.array([0, 2**32])).encode()
+    with pytest.raises(ValidationError, match="t_ns >= 0"):
+        EventPacket(make_events([-1], [0], [0], [0]), t_ns=np.array([-5])).encode()
+
+
 def test_event_blob_is_ros_mono_layout() -> None:
     ev = make_events([1000, 1003], [5, 239], [7, 179], [1, 0])
     from acquire.recording_format import _PB
