@@ -1,0 +1,65 @@
+"""DeMoCap: fused D415 marker clouds -> 53 labelled markers + 19 joints (docs/democap.md).
+
+Pipeline: normalisation into the [0.1, 0.9] cuboid (:mod:`.geometry`), front/back orthographic
+renders, the staged markers-to-pose network and CoM3D decoding (:mod:`.model`), dual-view
+fusion, inverse normalisation (:mod:`.infer`). Training data is simulated at the marker level
+(:mod:`.simdata`, :mod:`.dataset`); :mod:`.train` trains, :mod:`.evaluate` measures.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from process.democap.checkpoint import (
+    DEFAULT_CHECKPOINT,
+    Checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+)
+from process.democap.config import CONFIGS, DemocapConfig, config_by_name
+from process.democap.evaluate import EvalReport, evaluate
+from process.democap.infer import DemocapPredictor, Prediction
+from process.democap.model import DemocapNet
+from process.democap.train import TrainOptions, train
+
+__all__ = [
+    "CONFIGS",
+    "DEFAULT_CHECKPOINT",
+    "Checkpoint",
+    "DemocapConfig",
+    "DemocapNet",
+    "DemocapPredictor",
+    "EvalReport",
+    "Prediction",
+    "TrainOptions",
+    "config_by_name",
+    "demo_figures",
+    "evaluate",
+    "load_checkpoint",
+    "save_checkpoint",
+    "train",
+]
+
+
+def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
+    """Quick figures for ``mocaprig demo`` (a few seconds): the committed ``lite`` checkpoint
+    on a small held-out simulated test set (6 takes, 4 cameras).
+
+    Returns:
+        ``{"mpjpe_mm", "mpmpe_mm", "pck50", "mpjae_deg", "frames", "config", "epochs"}``.
+
+    Raises:
+        ProcessingError: the committed checkpoint is missing or does not match.
+    """
+    predictor = DemocapPredictor()
+    rep = evaluate(predictor, seed=seed, num_cameras=4, frames_per_take=frames_per_take)
+    m = rep.metrics
+    return {
+        "mpjpe_mm": m.mpjpe_mm,
+        "mpmpe_mm": m.mpmpe_mm,
+        "pck50": m.pck50,
+        "mpjae_deg": m.mpjae_deg,
+        "frames": m.frames,
+        "config": predictor.checkpoint.config.name,
+        "epochs": predictor.checkpoint.epoch,
+    }

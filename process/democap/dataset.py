@@ -1,0 +1,248 @@
+"""Training and held-out sample pools and batches, deterministic for a seed.
+
+A pool is a list of takes (:class:`process.democap.simdata.PoseFrames`) at 30 Hz, each a new
+subject (:meth:`BodyShape.sample`, marker placement jitter σ = 1 cm), a procedural motion with
+new take variation and, for training, a constant random offset on every joint angle (up to
+±12°, clipped to the limits) so the poses are not limited to the seven scores. The training
+and held-out pools come from different seed streams, so held-out bodies, placements and takes
+are never seen in training; a BVH clip (``--motion``) gives an action never trained on.
+
+A sample: one frame of one take, the actor turned to a random heading and moved up to 0.6 m
+off the centre, seen by a freshly sampled rig (:func:`simdata.sample_rig`), fused
+(:func:`simdata.merge_views`), moved to the image frame, centred on the raw centroid, rotated
+(training: ±10° / ±180° / ±10°), normalised from the raw points and rendered front and back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from scipy.spatial.transform import Rotation
+
+from acquire.errors import ValidationError
+from process.body import (
+    DOF_LIMITS_RAD,
+    PROCEDURAL_MOTIONS,
+    BodyShape,
+    BvhClip,
+    MarkerSet,
+    Motion,
+    make_motion,
+    retarget_bvh,
+)
+from process.democap.geometry import (
+    Normalisation,
+    back_view,
+    normalise,
+    random_rotation,
+    render_view,
+    to_image_frame,
+)
+from process.democap.simdata import PoseFrames, merge_views, observe, pose_frames, sample_rig
+
+__all__ = [
+    "TRAIN_ACTIONS",
+    "Batch",
+    "Sample",
+    "make_batch",
+    "make_pool",
+    "make_sample",
+    "pool_from_bvh",
+    "prepare_cloud",
+]
+
+FloatArray = npt.NDArray[np.float64]
+Split = Literal["train", "test"]
+
+#: Procedural actions used in both pools (the static T-pose is left out: it adds nothing).
+TRAIN_ACTIONS: tuple[str, ...] = tuple(m for m in PROCEDURAL_MOTIONS if m != "t_pose")
+RATE_HZ = 30.0
+_SPLIT_KEY = {"train": 0, "test": 1}
+
+
+def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> Motion:
+    off = np.deg2rad(rng.uniform(-max_deg, max_deg, DOF_LIMITS_RAD.shape[0]))
+    poses = np.array(motion.poses)
+    poses[:, 6:] = np.clip(poses[:, 6:] + off, DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1])
+    return Motion(motion.name, motion.rate_hz, poses)
+
+
+def make_pool(seed: int, split: Split, *, takes: int, seconds: float = 6.0) -> list[PoseFrames]:
+    """``takes`` takes cycling through :data:`TRAIN_ACTIONS`, from the ``split`` seed stream.
+
+    Raises:
+        ValidationError: ``takes`` < 1 or an unknown split.
+    """
+    if split not in _SPLIT_KEY:
+        msg = f"split must be 'train' or 'test', got {split!r}"
+        raise ValidationError(msg)
+    if takes < 1:
+        msg = f"takes must be >= 1, got {takes}"
+        raise ValidationError(msg)
+    pool = []
+    for k in range(takes):
+        rng = np.random.default_rng([seed, _SPLIT_KEY[split], k])
+        shape = BodyShape.sample(rng)
+        markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
+        action = TRAIN_ACTIONS[k % len(TRAIN_ACTIONS)]
+        motion = make_motion(action, seconds=seconds, rng=rng, rate_hz=RATE_HZ, shape=shape)
+        if split == "train":
+            motion = _offset_motion(motion, rng, 12.0)
+        pool.append(pose_frames(motion, shape, markers))
+    return pool
+
+
+def pool_from_bvh(clip: BvhClip, seed: int, *, subjects: int = 1) -> list[PoseFrames]:
+    """Held-out takes of a BVH clip (e.g. one never trained on) on ``subjects`` new bodies:
+    the clip is thinned to about 30 Hz and retargeted onto each body
+    (:func:`process.body.retarget_bvh`)."""
+    step = max(1, round(1.0 / (clip.frame_time_s * RATE_HZ)))
+    thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
+    out = []
+    for k in range(subjects):
+        rng = np.random.default_rng([seed, 2, k])
+        shape = BodyShape.sample(rng)
+        markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
+        motion = retarget_bvh(thin, shape)
+        out.append(pose_frames(motion.with_name(clip.name), shape, markers))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One prepared sample.
+
+    Attributes:
+        front, back: rendered views (S, S) float32.
+        norm: the normalisation (image frame, after centring and rotation).
+        rotation: the augmentation rotation (3, 3) applied about ``centre_m``.
+        centre_m: raw-cloud centroid, image frame, m.
+        raw_m: the fused raw cloud (N, 3), world, m.
+        markers_m, joints_m: truth (53, 3), (19, 3), world, m.
+        markers_n, joints_n: truth, normalised front frame.
+        action: the take's action.
+    """
+
+    front: npt.NDArray[np.float32]
+    back: npt.NDArray[np.float32]
+    norm: Normalisation
+    rotation: FloatArray
+    centre_m: FloatArray
+    raw_m: FloatArray
+    markers_m: FloatArray
+    joints_m: FloatArray
+    markers_n: FloatArray
+    joints_n: FloatArray
+    action: str
+
+
+def prepare_cloud(
+    raw_m: FloatArray, rotation: FloatArray | None = None, *, size_px: int = 160
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], Normalisation, FloatArray]:
+    """World cloud -> (front, back, normalisation, centre): image frame, centred, rotated,
+    normalised from the raw points, rendered.
+
+    Raises:
+        ValidationError: fewer than 2 points.
+    """
+    p = to_image_frame(raw_m)
+    if p.shape[0] < 2:
+        msg = f"the marker cloud has {p.shape[0]} point(s); DeMoCap needs at least 2"
+        raise ValidationError(msg)
+    centre = p.mean(axis=0)
+    q = p - centre
+    if rotation is not None:
+        q = q @ rotation.T
+    norm = normalise(q)
+    n = norm.apply(q)
+    return render_view(n, size_px=size_px), render_view(back_view(n), size_px=size_px), norm, centre
+
+
+def _place(frames: PoseFrames, index: int, yaw: float, shift: FloatArray) -> PoseFrames:
+    r = Rotation.from_rotvec([0.0, 0.0, yaw]).as_matrix()
+    root = frames.joints_m[index, 0] * np.array([1.0, 1.0, 0.0])
+
+    def move(p: FloatArray) -> FloatArray:
+        return np.asarray((p - root) @ r.T + root + shift)
+
+    return PoseFrames(
+        markers_m=move(frames.markers_m[index : index + 1]),
+        normals=frames.normals[index : index + 1] @ r.T,
+        joints_m=move(frames.joints_m[index : index + 1]),
+        caps_a_m=move(frames.caps_a_m[index : index + 1]),
+        caps_b_m=move(frames.caps_b_m[index : index + 1]),
+        caps_radius_m=frames.caps_radius_m,
+        action=frames.action,
+    )
+
+
+def make_sample(
+    frames: PoseFrames,
+    index: int,
+    rng: np.random.Generator,
+    *,
+    num_cameras: int = 4,
+    augment: bool = True,
+    size_px: int = 160,
+) -> Sample:
+    """Simulate, fuse, normalise and render frame ``index`` of a take (see module doc)."""
+    placed = _place(
+        frames,
+        index,
+        float(rng.uniform(-np.pi, np.pi)),
+        np.append(rng.uniform(-0.6, 0.6, 2), 0.0),
+    )
+    cams = sample_rig(rng, num_cameras=num_cameras)
+    views, _ = observe(placed, 0, cams, rng)
+    raw = merge_views(views)
+    if raw.shape[0] < 2:  # nothing seen: fall back to the noisy truth so the sample is usable
+        raw = placed.markers_m[0] + rng.normal(0.0, 0.01, placed.markers_m[0].shape)
+    rot = random_rotation(rng) if augment else np.eye(3)
+    front, back, norm, centre = prepare_cloud(raw, rot, size_px=size_px)
+
+    def to_n(p: FloatArray) -> FloatArray:
+        return norm.apply((to_image_frame(p) - centre) @ rot.T)
+
+    return Sample(
+        front=front,
+        back=back,
+        norm=norm,
+        rotation=rot,
+        centre_m=centre,
+        raw_m=raw,
+        markers_m=placed.markers_m[0],
+        joints_m=placed.joints_m[0],
+        markers_n=to_n(placed.markers_m[0]),
+        joints_n=to_n(placed.joints_m[0]),
+        action=frames.action,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Batch:
+    """Tensors for one training step: views (B, 1, S, S), truth (B, 53, 3) and (B, 19, 3)."""
+
+    front: torch.Tensor
+    back: torch.Tensor
+    markers: torch.Tensor
+    joints: torch.Tensor
+
+
+def make_batch(
+    pool: list[PoseFrames], rng: np.random.Generator, size: int, *, size_px: int = 160
+) -> Batch:
+    """``size`` random samples from random takes and frames of ``pool``."""
+    samples = []
+    for _ in range(size):
+        take = pool[int(rng.integers(len(pool)))]
+        samples.append(make_sample(take, int(rng.integers(take.num_frames)), rng, size_px=size_px))
+    return Batch(
+        front=torch.from_numpy(np.stack([s.front for s in samples]))[:, None],
+        back=torch.from_numpy(np.stack([s.back for s in samples]))[:, None],
+        markers=torch.from_numpy(np.stack([s.markers_n for s in samples])).float(),
+        joints=torch.from_numpy(np.stack([s.joints_n for s in samples])).float(),
+    )

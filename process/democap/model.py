@@ -1,0 +1,290 @@
+"""The staged markers-to-pose network, CoM3D decoding, dual-view fusion and the losses.
+
+Architecture (democap-method.md §2.1–2.2, paper §4.1 and Eq. 3), as the paper describes it:
+
+* stem (super-stage 1 only): two 3×3 stride-2 convolutions (conv, BN, ReLU) then bottleneck
+  residual units -> F, ``feature_channels``×40×40;
+* a super-stage: a start transition to two branches (40×40 and 20×20), then HRNet stages that
+  keep or add one lower-resolution branch, each made of exchange blocks (residual units per
+  branch, then every branch fused into every other: 1×1 conv + bilinear up-sampling from
+  lower resolutions, strided 3×3 convs from higher ones). Fusion reads a frozen copy of the
+  branches (original HRNet), not the in-place updated list of the authors' framework (§2.2).
+* one shared 1×1 conv + ReLU head reads the top branch after the transition and after every
+  stage; the heads are summed into the aggregated heat maps H̄ (Eq. 3, all stages, unlike the
+  implementation's ``2×stage2 + stage3 + stage4``);
+* super-stage 1 predicts the 53 marker maps; its output F ⊕ H̄_M feeds super-stage 2, which
+  predicts the 19 joint maps.
+
+CoM3D (§3, paper Eq. 5–6): ``z = mean(H̄)`` over the heat-map pixels, ``(x, y)`` = softmax
+centre of mass on a grid of pixel *centres* ``(j + 0.5) / W`` (the authors' ``j / W`` grid
+shifts every estimate by half a pixel). Dual-view fusion is paper Eq. 7.
+
+Losses (paper Eq. 8–10): Wing (w = 10, ε = 2) on the 3D Euclidean distance of each fused
+keypoint to the truth, and the Jensen–Shannon divergence between each view's softmax map and
+a normalised Gaussian (σ = 1 px) at the truth, summed over pixels; total
+``λ1 (Wing_M + Wing_J) + λ2 (JS_front + JS_back)`` with λ1 = 2, λ2 = 1.
+"""
+
+from __future__ import annotations
+
+from typing import cast
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from process.democap.config import DemocapConfig
+
+__all__ = [
+    "DemocapNet",
+    "NetOutput",
+    "com3d",
+    "democap_loss",
+    "fuse_views_torch",
+    "gaussian_targets",
+    "js_divergence",
+    "wing_loss",
+]
+
+
+def _conv_bn(cin: int, cout: int, k: int, stride: int = 1, relu: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = [
+        nn.Conv2d(cin, cout, k, stride=stride, padding=k // 2, bias=False),
+        nn.BatchNorm2d(cout),
+    ]
+    if relu:
+        layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class _Bottleneck(nn.Module):
+    """1×1 -> 3×3 -> 1×1 residual unit with BN (stem units)."""
+
+    def __init__(self, cin: int, cout: int, mid: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(
+            _conv_bn(cin, mid, 1), _conv_bn(mid, mid, 3), _conv_bn(mid, cout, 1, relu=False)
+        )
+        self.short: nn.Module = nn.Identity() if cin == cout else _conv_bn(cin, cout, 1, relu=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.body(x) + self.short(x))
+
+
+class _Basic(nn.Module):
+    """Two 3×3 convs with BN and an identity shortcut (HRNet branch unit)."""
+
+    def __init__(self, c: int) -> None:
+        super().__init__()
+        self.body = nn.Sequential(_conv_bn(c, c, 3), _conv_bn(c, c, 3, relu=False))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.body(x) + x)
+
+
+class _Exchange(nn.Module):
+    """Residual units on every branch, then all-to-all fusion from a frozen copy."""
+
+    def __init__(self, widths: list[int], units: int) -> None:
+        super().__init__()
+        self.branches = nn.ModuleList(
+            nn.Sequential(*[_Basic(w) for _ in range(units)]) for w in widths
+        )
+        n = len(widths)
+        fuse: list[nn.ModuleList] = []
+        for i in range(n):
+            row: list[nn.Module] = []
+            for j in range(n):
+                if j == i:
+                    row.append(nn.Identity())
+                elif j > i:
+                    row.append(_conv_bn(widths[j], widths[i], 1, relu=False))
+                else:
+                    steps: list[nn.Module] = []
+                    for s in range(i - j):
+                        last = s == i - j - 1
+                        cout = widths[i] if last else widths[j]
+                        steps.append(_conv_bn(widths[j], cout, 3, stride=2, relu=not last))
+                    row.append(nn.Sequential(*steps))
+            fuse.append(nn.ModuleList(row))
+        self.fuse = nn.ModuleList(fuse)
+
+    def forward(self, xs: list[torch.Tensor]) -> list[torch.Tensor]:
+        ys = [b(x) for b, x in zip(self.branches, xs, strict=True)]
+        out: list[torch.Tensor] = []
+        for i in range(len(self.fuse)):
+            row = cast(nn.ModuleList, self.fuse[i])
+            acc = ys[i]
+            for j in range(len(row)):
+                f = row[j]
+                if j == i:
+                    continue
+                z = f(ys[j])
+                if j > i:
+                    z = F.interpolate(
+                        z, size=ys[i].shape[-2:], mode="bilinear", align_corners=False
+                    )
+                acc = acc + z
+            out.append(torch.relu(acc))
+        return out
+
+
+class _SuperStage(nn.Module):
+    """Start transition + HRNet stages; returns the summed per-stage heads."""
+
+    def __init__(self, cin: int, k: int, cfg: DemocapConfig) -> None:
+        super().__init__()
+        w = cfg.width
+        self.start = nn.ModuleList([_conv_bn(cin, w, 3), _conv_bn(cin, 2 * w, 3, stride=2)])
+        stages: list[nn.ModuleList] = []
+        grow: list[nn.Module] = []
+        nb = 2
+        for branches, modules, units in zip(
+            cfg.stage_branches, cfg.stage_modules, cfg.stage_units, strict=True
+        ):
+            if branches > nb:
+                grow.append(_conv_bn(w * 2 ** (nb - 1), w * 2**nb, 3, stride=2))
+            else:
+                grow.append(nn.Identity())
+            nb = branches
+            widths = [w * 2**b for b in range(nb)]
+            stages.append(nn.ModuleList(_Exchange(widths, units) for _ in range(modules)))
+        self.grow = nn.ModuleList(grow)
+        self.stages = nn.ModuleList(stages)
+        self.branch_counts = tuple(cfg.stage_branches)
+        self.head = nn.Sequential(nn.Conv2d(w, k, 1), nn.ReLU(inplace=False))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        xs = [m(x) for m in self.start]
+        total: torch.Tensor = self.head(xs[0])
+        for grow, stage, nb in zip(self.grow, self.stages, self.branch_counts, strict=True):
+            if nb > len(xs):
+                xs = [*xs, grow(xs[-1])]
+            for block in cast(nn.ModuleList, stage):
+                xs = block(xs)
+            total = total + self.head(xs[0])
+        out: torch.Tensor = total
+        return out
+
+
+class NetOutput:
+    """Raw aggregated heat maps of one forward pass: markers (B, 53, H, W), joints (B, 19, H, W)."""
+
+    __slots__ = ("joints", "markers")
+
+    def __init__(self, markers: torch.Tensor, joints: torch.Tensor) -> None:
+        self.markers = markers
+        self.joints = joints
+
+
+class DemocapNet(nn.Module):
+    """DeMoCap markers-to-pose network: depth image (B, 1, S, S) -> aggregated heat maps."""
+
+    def __init__(self, cfg: DemocapConfig, *, num_markers: int = 53, num_joints: int = 19) -> None:
+        super().__init__()
+        c = cfg.stem_channels
+        fc = cfg.feature_channels
+        units: list[nn.Module] = [_Bottleneck(c, fc, max(fc // 4, 8))]
+        units += [_Bottleneck(fc, fc, max(fc // 4, 8)) for _ in range(cfg.stem_units - 1)]
+        self.stem = nn.Sequential(_conv_bn(1, c, 3, stride=2), _conv_bn(c, c, 3, stride=2), *units)
+        self.markers = _SuperStage(fc, num_markers, cfg)
+        self.joints = _SuperStage(fc + num_markers, num_joints, cfg)
+
+    def forward(self, x: torch.Tensor) -> NetOutput:
+        f = self.stem(x)
+        hm = self.markers(f)
+        hj = self.joints(torch.cat([f, hm], dim=1))
+        return NetOutput(hm, hj)
+
+
+def _grid(n: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return (torch.arange(n, device=device, dtype=dtype) + 0.5) / n
+
+
+def com3d(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """CoM3D decoding of raw heat maps (B, K, H, W).
+
+    Returns:
+        ``(xyz (B, K, 3), softmax maps (B, K, H, W))`` with x the column and y the row centre
+        of mass on pixel-centre coordinates in [0, 1] and z the map's spatial mean.
+    """
+    b, k, hh, ww = h.shape
+    z = h.mean(dim=(2, 3))
+    p = torch.softmax(h.reshape(b, k, hh * ww), dim=-1).reshape(b, k, hh, ww)
+    x = (p.sum(dim=2) * _grid(ww, h.device, h.dtype)).sum(dim=-1)
+    y = (p.sum(dim=3) * _grid(hh, h.device, h.dtype)).sum(dim=-1)
+    return torch.stack([x, y, z], dim=-1), p
+
+
+def fuse_views_torch(front: torch.Tensor, back: torch.Tensor) -> torch.Tensor:
+    """Paper Eq. 7 on tensors (..., 3): average front and back mapped into the front frame."""
+    flip = torch.stack([1.0 - back[..., 0], back[..., 1], 1.0 - back[..., 2]], dim=-1)
+    return 0.5 * (front + flip)
+
+
+def wing_loss(pred: torch.Tensor, target: torch.Tensor, *, w: float, eps: float) -> torch.Tensor:
+    """Mean Wing loss of the Euclidean distances between (..., 3) keypoints (paper Eq. 8)."""
+    d = torch.sqrt(((pred - target) ** 2).sum(dim=-1) + 1e-12)
+    c = w - w * torch.log1p(torch.tensor(w / eps, dtype=d.dtype))
+    return torch.where(d < w, w * torch.log1p(d / eps), d - c).mean()
+
+
+def gaussian_targets(xy: torch.Tensor, size: int, sigma_px: float) -> torch.Tensor:
+    """Normalised Gaussians (B, K, size, size) centred at ``xy`` (B, K, 2) in [0, 1]."""
+    g = _grid(size, xy.device, xy.dtype)
+    s = sigma_px / size
+    gx = torch.exp(-((g[None, None, :] - xy[..., 0:1]) ** 2) / (2 * s * s))
+    gy = torch.exp(-((g[None, None, :] - xy[..., 1:2]) ** 2) / (2 * s * s))
+    m = gy[..., :, None] * gx[..., None, :]
+    return m / m.sum(dim=(-2, -1), keepdim=True).clamp_min(1e-30)
+
+
+def js_divergence(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Jensen–Shannon divergence of maps (B, K, H, W), summed over pixels, mean over B × K."""
+    m = 0.5 * (p + q)
+    tiny = 1e-12
+    kl_pm = (p * (torch.log(p + tiny) - torch.log(m + tiny))).sum(dim=(-2, -1))
+    kl_qm = (q * (torch.log(q + tiny) - torch.log(m + tiny))).sum(dim=(-2, -1))
+    return (0.5 * (kl_pm + kl_qm)).mean()
+
+
+def democap_loss(
+    front: NetOutput,
+    back: NetOutput,
+    markers_gt: torch.Tensor,
+    joints_gt: torch.Tensor,
+    cfg: DemocapConfig,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Paper Eq. 10 for a batch; ground truth is front-frame normalised (B, 53, 3), (B, 19, 3).
+
+    Returns:
+        ``(loss, parts)`` with the parts as floats for logging.
+    """
+    size = front.markers.shape[-1]
+    fm, pfm = com3d(front.markers)
+    fj, pfj = com3d(front.joints)
+    bm, pbm = com3d(back.markers)
+    bj, pbj = com3d(back.joints)
+    pm = fuse_views_torch(fm, bm)
+    pj = fuse_views_torch(fj, bj)
+    wing_m = wing_loss(pm, markers_gt, w=cfg.wing_w, eps=cfg.wing_eps)
+    wing_j = wing_loss(pj, joints_gt, w=cfg.wing_w, eps=cfg.wing_eps)
+
+    def back_xy(t: torch.Tensor) -> torch.Tensor:
+        return torch.stack([1.0 - t[..., 0], t[..., 1]], dim=-1)
+
+    s = cfg.sigma_px
+    js_f = js_divergence(pfm, gaussian_targets(markers_gt[..., :2], size, s)) + js_divergence(
+        pfj, gaussian_targets(joints_gt[..., :2], size, s)
+    )
+    js_b = js_divergence(pbm, gaussian_targets(back_xy(markers_gt), size, s)) + js_divergence(
+        pbj, gaussian_targets(back_xy(joints_gt), size, s)
+    )
+    loss = cfg.coord_weight * (wing_m + wing_j) + cfg.heatmap_weight * (js_f + js_b)
+    parts = {
+        "wing_markers": float(wing_m.detach()),
+        "wing_joints": float(wing_j.detach()),
+        "js_front": float(js_f.detach()),
+        "js_back": float(js_b.detach()),
+    }
+    return loss, parts

@@ -1,0 +1,197 @@
+"""Training: simulated batches, Adam with ×0.95 decay every 4 epochs, a checkpoint per epoch.
+
+Deterministic for a seed: the network starts from ``torch.manual_seed(seed)``; step ``s`` of
+epoch ``e`` draws its batch from ``numpy.random.default_rng([seed, e, s])`` and torch is
+re-seeded at each epoch start, so a run resumed from an epoch checkpoint continues exactly as
+an uninterrupted one would (on the same machine and torch build).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from acquire.errors import ValidationError
+from process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from process.democap.config import DemocapConfig
+from process.democap.dataset import make_batch, make_pool, make_sample
+from process.democap.model import DemocapNet, democap_loss
+
+__all__ = ["TrainOptions", "train"]
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class TrainOptions:
+    """What :func:`train` does.
+
+    Attributes:
+        epochs: train until this many epochs are finished (in total, counting resumed ones).
+        seed: the run's seed (a resumed run keeps the checkpoint's seed).
+        takes: training takes in the pool (each a new subject and take, 6 s at 30 Hz).
+        samples_per_epoch: overrides the config's value when set.
+        batch_size: overrides the config's value when set.
+        threads: torch CPU threads.
+        max_seconds: stop after the epoch that passes this wall time (None: no limit).
+    """
+
+    epochs: int
+    seed: int = 0
+    takes: int = 96
+    samples_per_epoch: int | None = None
+    batch_size: int | None = None
+    threads: int = 2
+    max_seconds: float | None = None
+
+
+def _optimizer(
+    model: DemocapNet, cfg: DemocapConfig
+) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.StepLR]:
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_decay_epochs, gamma=cfg.lr_decay)
+    return opt, sched
+
+
+def train(
+    out: Path,
+    options: TrainOptions,
+    *,
+    config: DemocapConfig | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Checkpoint:
+    """Train (or resume) and write a checkpoint to ``out`` after every epoch.
+
+    Args:
+        out: checkpoint path.
+        options: see :class:`TrainOptions`.
+        config: the network config for a new run (ignored when resuming).
+        resume: continue from ``out``.
+        overwrite: allow replacing an existing ``out`` with a new run.
+        progress: ``(done_steps, total_steps)`` callback for this call.
+
+    Raises:
+        ValidationError: ``out`` exists without ``resume``/``overwrite``, ``resume`` without
+            ``out``, no config for a new run, or a non-positive epoch count.
+        ProcessingError: the checkpoint to resume does not match this code.
+    """
+    if options.epochs < 1:
+        msg = f"epochs must be >= 1, got {options.epochs}"
+        raise ValidationError(msg)
+    out = Path(out)
+    if resume:
+        ckpt = load_checkpoint(out)
+    else:
+        if out.exists() and not overwrite:
+            msg = f"{out} exists; pass resume to continue it or overwrite to start again"
+            raise ValidationError(msg)
+        if config is None:
+            msg = "a new training run needs a config (e.g. config_by_name('lite'))"
+            raise ValidationError(msg)
+        torch.manual_seed(options.seed)
+        ckpt = Checkpoint(config=config, model=DemocapNet(config), seed=options.seed)
+    cfg = ckpt.config
+    torch.set_num_threads(max(1, options.threads))
+    batch = options.batch_size or cfg.batch_size
+    steps = max(1, (options.samples_per_epoch or cfg.samples_per_epoch) // batch)
+    opt, sched = _optimizer(ckpt.model, cfg)
+    if ckpt.optimizer_state is not None:
+        opt.load_state_dict(ckpt.optimizer_state)
+    if ckpt.scheduler_state is not None:
+        sched.load_state_dict(ckpt.scheduler_state)
+    pool = make_pool(ckpt.seed, "train", takes=options.takes)
+    val = _validation_set(ckpt.seed, cfg.input_px)
+    todo = max(0, options.epochs - ckpt.epoch)
+    total = todo * steps
+    t_start = time.monotonic()
+    done = 0
+    for epoch in range(ckpt.epoch, options.epochs):
+        torch.manual_seed(ckpt.seed * 100_003 + epoch)
+        ckpt.model.train()
+        sums: dict[str, float] = {}
+        for step in range(steps):
+            rng = np.random.default_rng([ckpt.seed, epoch, step])
+            b = make_batch(pool, rng, batch, size_px=cfg.input_px)
+            front = ckpt.model(b.front)
+            back = ckpt.model(b.back)
+            loss, parts = democap_loss(front, back, b.markers, b.joints, cfg)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()  # type: ignore[no-untyped-call]
+            opt.step()
+            parts["loss"] = float(loss.detach())
+            for k, v in parts.items():
+                sums[k] = sums.get(k, 0.0) + v
+            done += 1
+            if progress is not None:
+                progress(done, total)
+        sched.step()
+        ckpt.epoch = epoch + 1
+        record = {k: v / steps for k, v in sums.items()}
+        record["epoch"] = float(ckpt.epoch)
+        record["lr"] = float(opt.param_groups[0]["lr"])
+        record["wall_s"] = time.monotonic() - t_start
+        record["val_mpjpe_mm"] = _validate(ckpt.model, val)
+        ckpt.history.append(record)
+        ckpt.optimizer_state = opt.state_dict()
+        ckpt.scheduler_state = sched.state_dict()
+        save_checkpoint(ckpt, out)
+        _log.info(
+            "epoch %d: loss %.4f, held-out MPJPE %.1f mm",
+            ckpt.epoch,
+            record["loss"],
+            record["val_mpjpe_mm"],
+        )
+        if options.max_seconds is not None and time.monotonic() - t_start > options.max_seconds:
+            _log.info("time budget reached after epoch %d", ckpt.epoch)
+            break
+    ckpt.model.eval()
+    return ckpt
+
+
+_Val = list[tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]]
+
+
+def _validation_set(seed: int, size_px: int, n: int = 48) -> _Val:
+    """Fixed held-out samples (test seed stream, no rotation augmentation)."""
+    pool = make_pool(seed, "test", takes=6, seconds=3.0)
+    rng = np.random.default_rng([seed, 99])
+    out: _Val = []
+    for i in range(n):
+        take = pool[i % len(pool)]
+        s = make_sample(
+            take, int(rng.integers(take.num_frames)), rng, augment=False, size_px=size_px
+        )
+        out.append(
+            (
+                torch.from_numpy(s.front)[None, None],
+                torch.from_numpy(s.back)[None, None],
+                s.norm.scale_m,
+                s.joints_n,
+            )
+        )
+    return out
+
+
+def _validate(model: DemocapNet, val: _Val) -> float:
+    """Mean joint error (mm, 17 joints without the toes) on the fixed held-out samples."""
+    from process.democap.infer import decode  # local: infer imports this module's siblings
+
+    model.eval()
+    keep = [k for k in range(19) if k not in (14, 18)]
+    errs = []
+    with torch.inference_mode():
+        front = torch.cat([v[0] for v in val])
+        back = torch.cat([v[1] for v in val])
+        _, j = decode(model, front, back)
+    for i, (_, _, scale, truth) in enumerate(val):
+        d = (j[i].double().numpy() - truth) * scale
+        errs.append(np.linalg.norm(d[keep], axis=-1).mean())
+    return float(np.mean(errs) * 1000.0)

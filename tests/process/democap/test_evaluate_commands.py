@@ -1,0 +1,129 @@
+"""Tests of evaluation (orientations, metrics on the committed model) and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from acquire.cli import main
+from process.democap import demo_figures
+from process.democap.checkpoint import DEFAULT_CHECKPOINT
+from process.democap.config import DemocapConfig
+from process.democap.dataset import make_pool
+from process.democap.evaluate import EVAL_JOINTS, SEGMENTS, evaluate, segment_quaternions
+from process.democap.infer import DemocapPredictor
+from process.democap.train import TrainOptions, train
+from process.metrics import quaternion_angle_deg
+
+needs_ckpt = pytest.mark.skipif(
+    not DEFAULT_CHECKPOINT.is_file(), reason="the committed lite checkpoint is absent"
+)
+
+
+def test_eval_joints_drop_the_toes() -> None:
+    assert len(EVAL_JOINTS) == 17
+    assert 14 not in EVAL_JOINTS
+    assert 18 not in EVAL_JOINTS
+
+
+def test_segment_orientations_follow_a_rigid_rotation() -> None:
+    pool = make_pool(0, "test", takes=1, seconds=0.2)
+    j, m = pool[0].joints_m[:1], pool[0].markers_m[:1]
+    q0 = segment_quaternions(j, m)
+    assert q0.shape == (1, len(SEGMENTS), 4)
+    rot = Rotation.from_euler("z", 25.0, degrees=True).as_matrix()
+    q1 = segment_quaternions(j @ rot.T, m @ rot.T)
+    np.testing.assert_allclose(quaternion_angle_deg(q1, q0), 25.0, atol=1e-6)
+    # moving a marker across the segment twists the frame; the angle is seen
+    m2 = m.copy()
+    m2[0, 30] += [0.0, 0.0, 0.05]  # RELB, the upper arm's marker pair
+    assert quaternion_angle_deg(segment_quaternions(j, m2), q0).max() > 1.0
+
+
+def test_evaluate_reports_all_figures_for_a_tiny_model(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    ck = train(tmp_path / "t.pt", TrainOptions(epochs=1, takes=2, threads=1), config=tiny_config)
+    rep = evaluate(DemocapPredictor(ck), seed=1, num_cameras=3, frames_per_take=2)
+    d = rep.to_dict()
+    assert d["frames"] == 12
+    assert d["num_cameras"] == 3
+    assert set(d["per_action_mm"]) == {
+        "clap",
+        "jumping_jacks",
+        "punch_kick",
+        "squat",
+        "wave",
+        "karate",
+    }
+    assert len(d["per_joint_mm"]) == 17
+    assert len(d["pck_curve"]) == 31
+    assert d["mpjpe_mm"] > 0
+    assert 0 <= d["pck50"] <= 1
+    assert d["mpjae_deg"] >= 0
+    assert 0.5 < d["markers_seen"] <= 1.0
+
+
+# The committed checkpoint measured 80-85 mm MPJPE and PCK@50 0.44-0.47 on 4 cameras (seeds
+# 0-2, 240 frames each; docs/democap.md). The bounds leave ~20 % headroom for these smaller
+# sets, so a worse checkpoint or a broken pipeline fails. They are NOT the issue's targets
+# (35 mm, 85 %), which the briefly trained model does not reach.
+_MPJPE_BOUND_MM = 100.0
+_PCK50_MIN = 0.35
+
+
+@needs_ckpt
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_committed_lite_model_accuracy_on_held_out_data(seed: int) -> None:
+    rep = evaluate(DemocapPredictor(), seed=seed, num_cameras=4, frames_per_take=8)
+    assert rep.metrics.mpjpe_mm < _MPJPE_BOUND_MM
+    assert rep.metrics.pck50 > _PCK50_MIN
+
+
+@needs_ckpt
+def test_demo_figures_are_quick_and_complete() -> None:
+    d = demo_figures(frames_per_take=4)
+    assert {"mpjpe_mm", "mpmpe_mm", "pck50", "mpjae_deg", "frames"} <= set(d)
+    assert d["frames"] == 24
+    assert d["config"] == "lite"
+
+
+@needs_ckpt
+def test_cli_eval_json(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["democap", "eval", "--frames", "2", "--all-cameras", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"mpjpe_mm", "mpmpe_mm", "pck50"} <= set(out)
+    assert set(out["by_cameras"]) == {"4", "3", "2"}
+
+
+def test_cli_train_then_resume_then_eval(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ck = tmp_path / "cli.pt"
+    base = ["democap", "train", "--out", str(ck), "--takes", "1", "--samples-per-epoch", "2"]
+    base += ["--batch-size", "2", "--threads", "1"]
+    assert main([*base, "--epochs", "1", "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["epochs"] == 1
+    assert first["config"] == "lite"
+    assert main([*base, "--epochs", "1"]) == 1  # exists: refused, nothing overwritten
+    capsys.readouterr()
+    assert main([*base, "--epochs", "2", "--resume", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["epochs"] == 2
+    assert main(["democap", "eval", "--ckpt", str(ck), "--frames", "1"]) == 0
+    assert "4 cameras: MPJPE" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_cli_eval_on_a_bvh_motion(shared_data: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    if not DEFAULT_CHECKPOINT.is_file():
+        pytest.skip("the committed lite checkpoint is absent")
+    bvh = shared_data / "motion" / "cmu_131_02_scaled.bvh"
+    assert main(["democap", "eval", "--motion", str(bvh), "--frames", "8", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["frames"] == 8
+    assert out["mpjpe_mm"] > 0

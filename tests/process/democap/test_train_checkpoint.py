@@ -1,0 +1,124 @@
+"""Tests of training (determinism, resume) and checkpoints (round trip, mismatch errors)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from acquire.errors import ProcessingError, ValidationError
+from process.democap.checkpoint import (
+    DEFAULT_CHECKPOINT,
+    FORMAT_VERSION,
+    load_checkpoint,
+    save_checkpoint,
+)
+from process.democap.config import DemocapConfig
+from process.democap.dataset import make_batch, make_pool, make_sample
+from process.democap.infer import DemocapPredictor
+from process.democap.train import TrainOptions, train
+
+_OPTS = TrainOptions(epochs=2, seed=3, takes=2, threads=1)
+
+
+def _weights(path: Path) -> list[torch.Tensor]:
+    return [t.clone() for t in load_checkpoint(path).model.state_dict().values()]
+
+
+def test_training_is_deterministic_and_resume_matches(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    full = tmp_path / "full.pt"
+    train(full, _OPTS, config=tiny_config)
+    part = tmp_path / "part.pt"
+    train(part, TrainOptions(epochs=1, seed=3, takes=2, threads=1), config=tiny_config)
+    ck = train(part, _OPTS, resume=True)
+    assert ck.epoch == 2
+    assert len(ck.history) == 2
+    for a, b in zip(_weights(full), _weights(part), strict=True):
+        torch.testing.assert_close(a, b)
+    hist = load_checkpoint(full).history
+    assert {"loss", "val_mpjpe_mm", "lr"} <= set(hist[-1])
+
+
+def test_train_refuses_to_overwrite(tmp_path: Path, tiny_config: DemocapConfig) -> None:
+    out = tmp_path / "x.pt"
+    out.write_bytes(b"")
+    with pytest.raises(ValidationError, match="exists"):
+        train(out, _OPTS, config=tiny_config)
+
+
+def test_checkpoint_round_trip_and_mismatches(tmp_path: Path, tiny_config: DemocapConfig) -> None:
+    out = tmp_path / "c.pt"
+    ck = train(out, TrainOptions(epochs=1, seed=0, takes=2, threads=1), config=tiny_config)
+    back = load_checkpoint(out)
+    assert back.config == tiny_config
+    assert back.epoch == 1
+    data = torch.load(out, weights_only=True)
+    for key, value, pattern in (
+        ("format_version", FORMAT_VERSION + 1, "format version"),
+        ("marker_names", ["A"] * 53, "marker names"),
+        ("joint_names", ["J"] * 19, "joint names"),
+        ("format", "other", "not a DeMoCap checkpoint"),
+    ):
+        bad = dict(data)
+        bad[key] = value
+        p = tmp_path / f"bad_{key}.pt"
+        torch.save(bad, p)
+        with pytest.raises(ProcessingError, match=pattern):
+            load_checkpoint(p)
+    bad = dict(data)
+    bad["config"] = {**data["config"], "width": 8}
+    torch.save(bad, tmp_path / "w.pt")
+    with pytest.raises(ProcessingError, match="do not match the stored config"):
+        load_checkpoint(tmp_path / "w.pt")
+    with pytest.raises(ProcessingError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_text("not torch")
+    with pytest.raises(ProcessingError, match="cannot be read"):
+        load_checkpoint(tmp_path / "junk.pt")
+    save_checkpoint(ck, tmp_path / "again.pt")
+    assert load_checkpoint(tmp_path / "again.pt").epoch == 1
+
+
+def test_batches_are_deterministic_and_normalised() -> None:
+    pool = make_pool(0, "train", takes=2, seconds=1.0)
+    a = make_batch(pool, np.random.default_rng(1), 3)
+    b = make_batch(pool, np.random.default_rng(1), 3)
+    torch.testing.assert_close(a.front, b.front)
+    torch.testing.assert_close(a.joints, b.joints)
+    assert a.front.shape == (3, 1, 160, 160)
+    assert 0.0 < float(a.joints.mean()) < 1.0
+
+
+def test_train_and_test_pools_use_different_bodies() -> None:
+    tr = make_pool(0, "train", takes=3, seconds=0.5)
+    te = make_pool(0, "test", takes=3, seconds=0.5)
+    for t in tr:
+        for s in te:
+            assert not np.allclose(t.caps_radius_m, s.caps_radius_m)
+
+
+def test_predictor_inverts_the_normalisation(tiny_config: DemocapConfig, tmp_path: Path) -> None:
+    """Whatever the (untrained) network says, outputs land in the cloud's world box."""
+    ck = train(tmp_path / "t.pt", TrainOptions(epochs=1, takes=2, threads=1), config=tiny_config)
+    pred = DemocapPredictor(ck)
+    pool = make_pool(0, "test", takes=1, seconds=0.5)
+    s = make_sample(pool[0], 3, np.random.default_rng(0), augment=False, size_px=64)
+    out = pred.predict(s.raw_m)
+    assert out.markers_m.shape == (53, 3)
+    assert out.joints_m.shape == (19, 3)
+    lo, hi = s.raw_m.min(axis=0) - 0.2, s.raw_m.max(axis=0) + 0.2
+    assert np.all((out.joints_m > lo) & (out.joints_m < hi))
+    with pytest.raises(ValidationError, match="at least 2"):
+        pred.predict(np.zeros((1, 3)))
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no committed lite checkpoint")
+def test_committed_checkpoint_loads_with_lite_config() -> None:
+    ck = load_checkpoint(DEFAULT_CHECKPOINT)
+    assert ck.config.name == "lite"
+    assert ck.epoch >= 1
+    assert DEFAULT_CHECKPOINT.stat().st_size < 8 * 2**20
