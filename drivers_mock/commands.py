@@ -212,15 +212,18 @@ def _demo(args: argparse.Namespace) -> int:
         cameras=args.cameras,
         davis_dvs=args.davis_dvs,
     )
+    failed = any(state.startswith("failed") for state in report.stages.values())
     if args.json:
         emit_json(report.to_dict())
-        return 0
+        return 1 if failed else 0
     f = report.figures
     r = f["recording"]
+    c = f.get("calibration", {})
+    d = f.get("democap", {})
     lines = [
         f"mocaprig demo: scenario {f['scenario']!r}, seed {f['seed']}, {f['seconds']:g} s",
         "stages:",
-        *(f"  {name:<9} {state}" for name, state in report.stages.items()),
+        *(f"  {name:<15} {state}" for name, state in report.stages.items()),
         "figures:",
         (
             f"  Vicon C3D: {f['body_markers']} body + {f['clapper_markers']} clapperboard markers, "
@@ -248,10 +251,26 @@ def _demo(args: argparse.Namespace) -> int:
             f"{r.get('davis_trigger_pulses')} trigger pulses, {r.get('trigger_frame_pairs')} "
             "paired with D415 master frames"
         ),
+        (
+            f"  calibration vs truth: {c['cameras']} cameras, worst "
+            f"{c['max_rotation_error_deg']:.3f} deg / {c['max_translation_error_mm']:.2f} mm, "
+            f"D415 clock offset {c['max_d415_clock_offset_error_ms']:.3f} ms, drift "
+            f"{c['max_d415_drift_error_ppm']:.1f} ppm, DAVIS-D415 "
+            f"{c['davis_vs_d415_clock_error_us']:.2f} us"
+            if "error" not in c and c
+            else f"  calibration: {c.get('error', 'not run')}"
+        ),
+        (
+            f"  DeMoCap ({d['config']}, held-out takes, 4 cameras): MPJPE {d['mpjpe_mm']:.1f} mm, "
+            f"MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 {100 * d['pck50']:.1f} %"
+            if "error" not in d and d
+            else f"  DeMoCap: {d.get('error', 'not run')}"
+        ),
         "outputs:",
-        f"  session (truth + Vicon C3D/CSV): {report.session_dir}",
+        f"  session (truth + Vicon C3D/CSV + session.mcap): {report.session_dir}",
+        f"  calibration: {c.get('calibration_file', '-')}",
         f"  summary figure: {report.figure_path}",
         f"  report:         {report.report_path}",
     ]
     print("\n".join(lines))
-    return 0
+    return 1 if failed else 0

@@ -285,7 +285,8 @@ def record_session(
     Devices: ``davis`` (APS frames, IMU, trigger input, and DVS events with ``davis_dvs``),
     ``d415`` (the first ``cameras`` rig D415, master first, IR + depth, 848×480@30), ``syncbox``
     (listening to the D415 master's pulses; needs ``d415``). With ``truth_dir``, every mock
-    D415 capture (delivered or not) goes to ``truth_dir/d415_captures.npz``.
+    D415 capture (delivered or not) goes to ``truth_dir/d415_captures.npz``, and the DAVIS's
+    recorded time base (its last timestamp reset) to ``truth_dir/davis_clock.json``.
 
     Raises:
         ValidationError: an unknown device, a bad camera count, ``syncbox`` without ``d415``.
@@ -328,6 +329,7 @@ def record_session(
     followers: list[StreamSource] = []
     d415s: list[Any] = []
     cam: Any = None
+    davis_sim: Any = None
     try:
         master_pulses: Callable[[int], int | None] | None = None
         if n_cams:
@@ -352,6 +354,7 @@ def record_session(
             )
         if "davis" in chosen:
             sim = DavisSimulator(world, sync_source=master_pulses)
+            davis_sim = sim
             backend = mock_backend(
                 source=sim, scenario=world, seed=world.seed, serial=world.rig.davis.serial
             )
@@ -428,6 +431,8 @@ def record_session(
         driver_drops = int(st.packets_dropped) + int(st.raw_bytes_dropped)
     if truth_dir is not None and d415s:
         _write_captures(truth_dir / "d415_captures.npz", d415s)
+    if truth_dir is not None and davis_sim is not None:
+        _write_davis_clock(truth_dir / "davis_clock.json", world, davis_sim)
     if summary.drops_total or driver_drops:
         msg = (
             f"recording {path}: {summary.drops_total} messages and {driver_drops} DAVIS driver "
@@ -500,3 +505,21 @@ def _write_captures(path: Path, d415s: Sequence[Any]) -> None:
         arrays[f"{key}__is_master"] = np.array(d.sync_mode.name == "MASTER")
     with path.open("wb") as f:  # truth/ is rewritten as a whole by simulate_session
         np.savez(f, **arrays)  # type: ignore[arg-type]
+
+
+def _write_davis_clock(path: Path, world: Scenario, sim: Any) -> None:
+    """The recorded DAVIS time base as ground truth: the session instant of its last timestamp
+    reset and the formula from session time to the recorded device time."""
+    import json
+
+    clock = world.clocks["davis"]
+    data = {
+        "format_version": 1,
+        "device": f"davis/{world.rig.davis.serial}",
+        "clock": "davis",
+        "reset_session_ns": int(np.asarray(sim.session_ns(0)).item()),
+        "drift_ppm": float(clock.drift_ppm),
+        "formula": "recorded_device_ns = (t_ns - reset_session_ns) * (1 + drift_ppm * 1e-6), "
+        "stamped in whole us (floored)",
+    }
+    path.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")

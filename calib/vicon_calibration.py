@@ -1,0 +1,1389 @@
+"""Calibrate a recorded D415 rig against a Vicon trial; score a calibration against truth.
+
+:func:`calibrate_vicon` (``mocaprig calibrate vicon``):
+
+1. **Vicon**: the trial's trajectories (metres), frame times on the Vicon clock
+   ``(first_frame − 1 + i)/rate``; a unit check on the marker cloud's extent; the **static
+   start** (markers within ``static_tolerance_m`` of the first frames) and its median cloud; the
+   claps (``calib.time_align.find_claps_vicon``; none is an error).
+2. **Reading**: the recording is measured (``calib.markers.measure_frame``) only in device-time
+   windows — the first ``head_window_s``, around each Vicon clap, and ``extra_windows`` — found
+   by bisection over the host log time, all cameras in one pass per window.
+3. **Registration** per camera on its static start (blobs still within
+   ``static_tolerance_px``): :func:`calib.registration.register_camera` (coarse alignment without
+   an initial pose, gated matching, bundle adjustment).
+4. **Clock** per camera (``clock_method``): reprojection offsets of 0.5 s stretches of frames and
+   a line through them (offset, drift), optionally refined by ``calib.time_align``.
+5. **Final bundle adjustment** over all frames read, the Vicon markers interpolated at each
+   frame's mapped time (fast markers and partly occluded blobs left out); clock and pose are
+   iterated twice.
+6. **Refusal**: a camera whose reprojection RMS exceeds ``max_rms_px`` (default
+   :data:`MAX_RMS_PX` = 1.5 px) or with fewer than ``min_inliers`` (default 30) inlier
+   observations makes the calibration fail with the figures, unless ``force`` is set.
+
+7. **DAVIS clock** (when the recording has ``/davis/<serial>/trigger``): the D415 master's sync
+   pulses on the DAVIS's external input, paired with the master's frames
+   (``calib.time_align.clock_from_pulses``) and composed with the master's Vicon mapping; see
+   :func:`_davis_pulse_inputs` for the pairing prior. The DAVIS's extrinsics come from
+   ``mocaprig calibrate board``.
+
+:func:`evaluate_calibration` (``mocaprig calibrate evaluate``) compares a calibration with a
+simulated session's truth (``SIMDIR/truth/scenario.json``, read directly: calib/ never imports
+the simulator).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import logging
+import math
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from acquire import __version__
+from acquire.check import check_positive
+from acquire.errors import CalibrationError, RecordingError
+from acquire.recording import Recording
+from acquire.recording_format import topic
+from calib.calibration import Calibration, CameraCalibration, ClockMapping, calibration_bytes
+from calib.markers import MarkerFrame
+from calib.registration import (
+    CameraRegistration,
+    project_points,
+    register_camera,
+    rotation_error_deg,
+)
+from calib.time_align import ClapDetection
+from calib.vicon import MarkerTrajectories
+
+__all__ = [
+    "ATTACHMENT_NAME",
+    "MAX_RMS_PX",
+    "CalibrationOptions",
+    "DeviceEvaluation",
+    "Evaluation",
+    "ViconCalibrationResult",
+    "ViconStatic",
+    "attach_calibration",
+    "calibrate_vicon",
+    "evaluate_calibration",
+    "vicon_static_start",
+]
+
+_log = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: Default refusal threshold on a camera's reprojection RMS (px). The simulated rig gives
+#: 0.2–0.4 px; a wrong registration gives several px.
+MAX_RMS_PX: Final = 1.5
+#: Name of the calibration attachment written into a recording copy.
+ATTACHMENT_NAME: Final = "calibration.toml"
+#: A body marker cloud spans 0.3–4 m; outside [_MIN_EXTENT_M, _MAX_EXTENT_M] the units are wrong.
+_MIN_EXTENT_M: Final = 0.2
+_MAX_EXTENT_M: Final = 10.0
+_U32_US: Final = 1 << 32
+#: Length of the stretches of frames that each give one clock offset (ns).
+_CHUNK_NS: Final = 500_000_000
+_U32_NS: Final = _U32_US * 1000
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationOptions:
+    """Options of :func:`calibrate_vicon`.
+
+    Attributes:
+        head_window_s: How much of the recording's start is measured: the static start, the
+            motion onset (coarse clock) and usually the first clap (s).
+        clock_method: ``"reprojection"``: offsets of the Vicon markers' reprojection over
+            chunks of frames, a line through them; ``"claps+speed"``: that as the prior, then
+            :mod:`calib.time_align` (claps, speed cross-correlation).
+        max_marker_speed_m_s: Markers moving faster are left out of the final bundle
+            adjustment (m/s).
+        min_area_ratio: Blobs whose area × depth² is below this fraction of the camera's median
+            (partly occluded markers) are left out of the final bundle adjustment; 0 keeps all.
+        extra_windows: Further 0.6 s windows read for the clock fit, as fractions of the
+            session (the windows around the Vicon claps are always read).
+        static_tolerance_m: Vicon markers within this of the first frames count as still (m).
+        static_tolerance_px: D415 blobs within this of the first frame count as still (px).
+        min_static_frames: Fewest still D415 frames a camera needs.
+        max_rms_px: Refusal threshold on the reprojection RMS (px).
+        min_inliers: Refusal threshold on the inlier observations per camera.
+        force: Write the calibration even above the thresholds (the figures are kept).
+        cameras: ``"d415/<serial>"`` labels to calibrate; None = every D415 of the recording.
+        seed: Seed of the coarse alignment's sampling.
+        unit: Length unit of the Vicon file when it does not say (``"mm"``, ``"cm"``, ``"m"``).
+        sync_pulse_us: Width of the D415 master's sync pulse (µs): a DAVIS reporting whole
+            pulses (special type 4, stamped at the trailing edge) is moved back by it to the
+            rising edge (the exposure start); rising-edge events (type 2) need no correction.
+    """
+
+    head_window_s: float = 2.2
+    clock_method: Literal["reprojection", "claps+speed"] = "reprojection"
+    max_marker_speed_m_s: float = 0.3
+    min_area_ratio: float = 0.85
+    extra_windows: tuple[float, ...] = (0.1, 0.33, 0.67, 0.9)
+    static_tolerance_m: float = 0.003
+    static_tolerance_px: float = 0.6
+    min_static_frames: int = 5
+    max_rms_px: float = MAX_RMS_PX
+    min_inliers: int = 30
+    force: bool = False
+    cameras: tuple[str, ...] | None = None
+    seed: int = 0
+    unit: str | None = None
+    sync_pulse_us: float = 50.0
+
+    def __post_init__(self) -> None:
+        check_positive(self.head_window_s, name="head_window_s")
+        check_positive(self.sync_pulse_us, name="sync_pulse_us")
+        check_positive(self.static_tolerance_m, name="static_tolerance_m")
+        check_positive(self.static_tolerance_px, name="static_tolerance_px")
+        check_positive(self.max_rms_px, name="max_rms_px")
+
+
+@dataclass(frozen=True, slots=True)
+class ViconStatic:
+    """The Vicon trial's static start.
+
+    Attributes:
+        labels: Marker labels (M).
+        cloud_m: ``(M, 3)`` median positions over the still frames (m); NaN if never seen.
+        n_frames: Still frames used.
+        t_vicon_ns: ``(F,)`` Vicon-clock time of every frame of the trial (ns).
+        extent_m: Bounding-box diagonal of the still cloud (m).
+    """
+
+    labels: tuple[str, ...]
+    cloud_m: F64 = field(repr=False)
+    n_frames: int
+    t_vicon_ns: npt.NDArray[np.int64] = field(repr=False)
+    extent_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class ViconCalibrationResult:
+    """What :func:`calibrate_vicon` found, with diagnostics for the report.
+
+    Attributes:
+        calibration: The calibration (cameras with residual statistics, clock mappings).
+        registrations: Per camera label, the registration (coarse and final pose, observations).
+        static_frames: Per camera label, the number of still D415 frames used.
+        vicon: The Vicon static start.
+        refused: Cameras above the thresholds (written anyway because ``force`` was set).
+        notes: Human-readable remarks (what was not done and why).
+        vicon_claps: The claps found in the Vicon trial (for the report).
+        clock_fits: Per camera, the reprojection clock's stretches: device times (ns), offsets
+            (ns) and their 1σ (ns) (for the report).
+    """
+
+    calibration: Calibration
+    registrations: Mapping[str, CameraRegistration] = field(repr=False)
+    static_frames: Mapping[str, int]
+    vicon: ViconStatic = field(repr=False)
+    refused: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    vicon_claps: tuple[ClapDetection, ...] = field(default=(), repr=False)
+    clock_fits: Mapping[str, tuple[F64, F64, F64]] = field(default_factory=dict, repr=False)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain JSON-able figures (``--json``)."""
+        cams = []
+        for c in self.calibration.cameras:
+            cams.append(
+                {
+                    "name": c.name,
+                    "serial": c.serial,
+                    "static_frames": self.static_frames.get(c.name, 0),
+                    **dict(c.residuals),
+                    "camera_centre_m": c.T_world_cam[:3, 3].tolist(),
+                }
+            )
+        clocks = [
+            {
+                "device": k.device,
+                "offset_ns": k.offset_ns,
+                "drift_ppm": k.drift_ppm,
+                "offset_sigma_ns": k.offset_sigma_ns,
+                "method": k.method,
+            }
+            for k in self.calibration.clocks
+        ]
+        return {
+            "cameras": cams,
+            "clocks": clocks,
+            "vicon_static_frames": self.vicon.n_frames,
+            "refused": list(self.refused),
+            "notes": list(self.notes),
+            "statistics": dict(self.calibration.statistics),
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Vicon
+# --------------------------------------------------------------------------------------------
+
+
+def vicon_static_start(
+    positions_m: npt.ArrayLike,
+    labels: Sequence[str],
+    t_vicon_ns: npt.ArrayLike,
+    *,
+    tolerance_m: float = 0.003,
+    min_frames: int = 5,
+    source: str = "Vicon trial",
+) -> ViconStatic:
+    """The leading still frames of a trial and their median cloud.
+
+    A frame is still while the 90th percentile of the markers' distances to the median of the
+    first 5 frames stays below ``tolerance_m``.
+
+    Raises:
+        CalibrationError: the cloud's extent is implausible for a person in metres (wrong
+            units), or fewer than ``min_frames`` still frames (no static start).
+    """
+    p = np.asarray(positions_m, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3 or p.shape[0] == 0:
+        msg = f"{source}: expected (F, M, 3) marker positions, got {p.shape}"
+        raise CalibrationError(msg)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN frames or markers
+        head = np.nanmedian(p[: min(5, len(p))], axis=0)
+        dist = np.linalg.norm(p - head, axis=2)
+        p90 = np.nanpercentile(dist, 90, axis=1)
+    still = np.isfinite(p90) & (p90 < tolerance_m)
+    n = int(np.argmin(still)) if not still.all() else len(still)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        cloud = np.nanmedian(p[: max(n, 1)], axis=0)
+    ok = np.isfinite(cloud).all(axis=1)
+    extent = float(np.linalg.norm(np.ptp(cloud[ok], axis=0))) if ok.sum() >= 2 else 0.0
+    if not (_MIN_EXTENT_M <= extent <= _MAX_EXTENT_M):
+        msg = (
+            f"{source}: the markers span {extent:.3g} m (bounding-box diagonal); a person in "
+            f"metres spans {_MIN_EXTENT_M}–{_MAX_EXTENT_M} m, so the file's units are wrong "
+            "(POINT:UNITS says one unit, the values are in another?); fix the file or pass the "
+            "right unit (--unit)"
+        )
+        raise CalibrationError(msg)
+    if n < min_frames:
+        msg = (
+            f"{source}: no static start: only {n} leading frames keep the markers within "
+            f"{1e3 * tolerance_m:.0f} mm (need {min_frames}); the calibration needs the actor "
+            "still (T-pose) for the first second"
+        )
+        raise CalibrationError(msg)
+    return ViconStatic(
+        labels=tuple(labels),
+        cloud_m=cloud,
+        n_frames=n,
+        t_vicon_ns=np.asarray(t_vicon_ns, dtype=np.int64),
+        extent_m=extent,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The pipeline
+# --------------------------------------------------------------------------------------------
+
+
+def _d415_static_frames(frames: Sequence[MarkerFrame], tolerance_px: float) -> tuple[int, int]:
+    """(first, count) of the leading frames whose blobs stay within ``tolerance_px`` (median
+    nearest-neighbour distance) of the first frame with ≥ 4 blobs."""
+    from scipy.spatial import cKDTree
+
+    k0 = 0
+    while k0 < len(frames) and frames[k0].n_markers < 4:
+        k0 += 1
+    if k0 == len(frames):
+        return 0, 0
+    tree = cKDTree(frames[k0].uv_px)
+    n = 1
+    for f in frames[k0 + 1 :]:
+        if f.n_markers == 0:
+            break
+        d, _ = tree.query(f.uv_px)
+        if float(np.median(d)) > tolerance_px:
+            break
+        n += 1
+    return k0, n
+
+
+@dataclass(frozen=True, slots=True)
+class _Cam:
+    name: str
+    serial: str
+    width: int
+    height: int
+    K: F64
+    dist: F64
+
+
+def _cameras(rec: Recording, wanted: Sequence[str] | None, source: str) -> list[_Cam]:
+    available = [
+        f"d415/{t.strip('/').split('/')[1]}"
+        for t in rec.topics
+        if t.startswith("/d415/") and t.endswith("/ir")
+    ]
+    names = [c if c.startswith("d415/") else f"d415/{c}" for c in (wanted or available)]
+    if not names:
+        msg = f"{source}: the recording has no D415 stream (/d415/<serial>/ir)"
+        raise CalibrationError(msg)
+    out = []
+    for cam in names:
+        if cam not in available:
+            msg = f"{source}: no D415 {cam!r}; the recording has {available or 'none'}"
+            raise CalibrationError(msg)
+        serial = cam.split("/", 1)[1]
+        info = next((p for _, p in rec.decoded(topic("d415", serial, "camera_info"))), None)
+        if info is None or not info.k or info.k[0] <= 0:
+            msg = f"{source}: {cam} has no camera_info, so its intrinsics are unknown"
+            raise CalibrationError(msg)
+        K = np.array(info.k, dtype=np.float64).reshape(3, 3)
+        dist = np.zeros(5)
+        d = np.array(info.d, dtype=np.float64)
+        dist[: min(5, d.size)] = d[:5]
+        out.append(_Cam(cam, serial, int(info.width), int(info.height), K, dist))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class _Probe:
+    """The first frame of a camera at or after a log time."""
+
+    log_ns: int
+    dev_ns: int
+    counter: int
+
+
+def _unwrap_ns(stamp_us: int, anchor_us: int) -> int:
+    """Device ns of a u32 µs stamp, taken at or after the camera's first stamp ``anchor_us``
+    (recordings shorter than one wrap, 71.6 min)."""
+    k = -((stamp_us - anchor_us) // _U32_US)
+    return (stamp_us + max(k, 0) * _U32_US) * 1000
+
+
+def _probe(rec: Recording, cam: _Cam, log_ns: int, anchor_us: int) -> _Probe | None:
+    m = next(iter(rec.messages(topic("d415", cam.serial, "frame_info"), start_ns=log_ns)), None)
+    if m is None:
+        return None
+    fi = m.decode()
+    if fi.sensor_timestamp_us is None:
+        msg = (
+            f"{rec.path}: {cam.name} frames have no device timestamps (no metadata); the "
+            "calibration needs the D415 hardware clock"
+        )
+        raise CalibrationError(msg)
+    return _Probe(
+        m.log_time_ns, _unwrap_ns(int(fi.sensor_timestamp_us), anchor_us), fi.frame_counter
+    )
+
+
+def _log_at(
+    rec: Recording, cam: _Cam, dev_ns: int, first: _Probe, end_log: int, anchor_us: int
+) -> tuple[int, int]:
+    """(log time of the last frame before ``dev_ns``, of the first frame at or after it), by
+    bisection over the host log time (which in a simulated recording is not proportional to
+    device time, so no rate is assumed)."""
+    lo, hi = first, None
+    lo_log, hi_log = first.log_ns, end_log
+    if first.dev_ns >= dev_ns:
+        return first.log_ns, first.log_ns
+    while hi_log - lo_log > 1:
+        mid = (lo_log + hi_log) // 2
+        p = _probe(rec, cam, mid, anchor_us)
+        if p is None or p.dev_ns >= dev_ns:
+            hi, hi_log = p, mid
+            if p is not None and p.counter - lo.counter <= 1:
+                break
+        else:
+            lo, lo_log = p, p.log_ns
+    return lo.log_ns, (hi.log_ns if hi is not None else end_log)
+
+
+def _read_frames(
+    rec: Recording,
+    cams: Sequence[_Cam],
+    log_lo: int,
+    log_hi: int,
+    dev_windows: Mapping[str, tuple[int, int]],
+    anchors: Mapping[str, int],
+) -> dict[str, list[MarkerFrame]]:
+    """Measure the D415 frames with messages in ``[log_lo, log_hi]`` whose device time lies in
+    their camera's ``dev_windows`` entry; one pass over the recording's chunks for all cameras."""
+    from calib.markers import measure_frame
+
+    by_topic: dict[str, tuple[_Cam, str]] = {}
+    for c in cams:
+        for kind in ("ir", "depth", "frame_info"):
+            by_topic[topic("d415", c.serial, kind)] = (c, kind)
+    pending: dict[tuple[str, int], dict[str, Any]] = {}
+    out: dict[str, list[MarkerFrame]] = {c.name: [] for c in cams}
+    for m in rec.messages(sorted(by_topic), start_ns=log_lo, end_ns=log_hi + 1):
+        cam, kind = by_topic[m.topic]
+        key = (cam.name, int(m.sequence))
+        slot = pending.setdefault(key, {})
+        slot[kind] = m if kind != "frame_info" else m.decode()
+        if not {"ir", "depth", "frame_info"} <= slot.keys():
+            continue
+        del pending[key]
+        fi = slot["frame_info"]
+        if fi.sensor_timestamp_us is None:
+            continue
+        t_dev = _unwrap_ns(int(fi.sensor_timestamp_us), anchors[cam.name])
+        lo, hi = dev_windows[cam.name]
+        if not lo <= t_dev < hi:
+            continue
+        out[cam.name].append(
+            measure_frame(
+                slot["ir"].decode().image,
+                slot["depth"].decode().image,
+                cam.K,
+                depth_scale_m=float(fi.depth_scale_m) or 0.001,
+                camera=cam.name,
+                t_dev_ns=t_dev,
+                frame_counter=int(fi.frame_counter),
+                distortion=cam.dist,
+            )
+        )
+    for frames in out.values():
+        frames.sort(key=lambda f: f.t_dev_ns)
+    return out
+
+
+def _read_device_window(
+    rec: Recording,
+    cams: Sequence[_Cam],
+    dev_windows: Mapping[str, tuple[int, int]],
+    firsts: Mapping[str, _Probe],
+    end_log: int,
+) -> dict[str, list[MarkerFrame]]:
+    """Frames of each camera in its device-time window, reading the union of their log ranges."""
+    anchors = {c.name: firsts[c.name].dev_ns // 1000 for c in cams}
+    lo_log, hi_log = None, None
+    for c in cams:
+        lo, hi = dev_windows[c.name]
+        a, _ = _log_at(rec, c, lo, firsts[c.name], end_log, anchors[c.name])
+        _, b = _log_at(rec, c, hi, firsts[c.name], end_log, anchors[c.name])
+        lo_log = a if lo_log is None else min(lo_log, a)
+        hi_log = b if hi_log is None else max(hi_log, b)
+    if lo_log is None or hi_log is None:
+        return {c.name: [] for c in cams}
+    return _read_frames(rec, cams, lo_log, hi_log, dev_windows, anchors)
+
+
+class _ViconInterp:
+    """Vicon marker positions at Vicon-clock times: cubic (Catmull–Rom) between frames, linear
+    next to a gap, NaN inside gaps and outside the trial."""
+
+    def __init__(self, t_ns: I64, positions_m: F64) -> None:
+        self.t = t_ns.astype(np.float64)
+        self.p = positions_m
+
+    def at(self, t_ns: npt.ArrayLike) -> F64:
+        t = np.asarray(t_ns, dtype=np.float64)
+        n = len(self.t)
+        i = np.clip(np.searchsorted(self.t, t) - 1, 0, n - 2)
+        u = ((t - self.t[i]) / (self.t[i + 1] - self.t[i]))[:, None, None]
+        p0 = self.p[np.maximum(i - 1, 0)]
+        p1 = self.p[i]
+        p2 = self.p[i + 1]
+        p3 = self.p[np.minimum(i + 2, n - 1)]
+        linear = (1.0 - u) * p1 + u * p2
+        cubic = 0.5 * (
+            2.0 * p1
+            + (p2 - p0) * u
+            + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * u**2
+            + (3.0 * p1 - p0 - 3.0 * p2 + p3) * u**3
+        )
+        out: F64 = np.where(np.isfinite(cubic), cubic, linear)
+        outside = (t < self.t[0]) | (t > self.t[-1])
+        out[outside] = np.nan
+        return out
+
+
+def _project_frames(frames: Sequence[MarkerFrame], ref: F64, T: F64, cam: _Cam) -> F64:
+    uv, _ = project_points(ref.reshape(-1, 3), T, cam.K, cam.dist)
+    out: F64 = uv.reshape(len(frames), -1, 2)
+    return out
+
+
+def _grid_offset(
+    frames: Sequence[MarkerFrame],
+    T: F64,
+    cam: _Cam,
+    vicon: _ViconInterp,
+    prior_ns: int,
+    *,
+    half_width_ns: int,
+    step_ns: int,
+    gate_px: float = 3.0,
+) -> int:
+    """The device → Vicon offset (ns) minimising the truncated reprojection cost: a coarse grid
+    (5 × ``step_ns``, gate 2 × ``gate_px``) over ±``half_width_ns``, then ``step_ns`` around
+    the coarse minimum."""
+    from scipy.spatial import cKDTree
+
+    t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
+    used = [k for k, f in enumerate(frames) if f.n_markers > 0]
+
+    def cost(delta: int, gate: float) -> float:
+        uv = _project_frames([frames[k] for k in used], vicon.at(t_dev[used] + delta), T, cam)
+        total = 0.0
+        for i, k in enumerate(used):
+            ok = np.isfinite(uv[i]).all(axis=1)
+            if ok.any():
+                d, _ = cKDTree(uv[i][ok]).query(frames[k].uv_px, distance_upper_bound=gate)
+                total += float((np.minimum(d, gate) ** 2).sum())
+            else:
+                total += gate**2 * frames[k].n_markers
+        return total
+
+    if not used:
+        return prior_ns
+    coarse = 5 * step_ns
+    grid = range(prior_ns - half_width_ns, prior_ns + half_width_ns + 1, coarse)
+    best = min(grid, key=lambda d: cost(d, 2.0 * gate_px))
+    fine = range(best - coarse, best + coarse + 1, step_ns)
+    return min(fine, key=lambda d: cost(d, gate_px))
+
+
+def _fit_offset(
+    frames: Sequence[MarkerFrame],
+    T: F64,
+    cam: _Cam,
+    vicon: _ViconInterp,
+    delta0_ns: int,
+    *,
+    gate_px: float = 3.0,
+) -> tuple[float, float, int]:
+    """Continuous device → Vicon offset over frames: matched blobs, soft-L1 least squares over
+    the offset (ms). Returns (offset ns, 1σ ns, pairs); σ is inf without motion."""
+    from scipy.optimize import least_squares
+
+    from calib.registration import match_markers
+
+    t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.float64)
+    delta = float(delta0_ns)
+    sigma, n_pairs = math.inf, 0
+    for _ in range(2):
+        uv = _project_frames(frames, vicon.at(t_dev + delta), T, cam)
+        rows: list[tuple[int, int, int]] = []
+        for k, f in enumerate(frames):
+            i, j = match_markers(f.uv_px, uv[k], gate_m=gate_px)
+            rows.extend((k, int(a), int(b)) for a, b in zip(i, j, strict=True))
+        if len(rows) < 6:
+            return delta, math.inf, len(rows)
+        fk = np.array([r[0] for r in rows])
+        bi = np.array([r[1] for r in rows])
+        mj = np.array([r[2] for r in rows])
+        obs = np.stack([frames[k].uv_px[b] for k, b in zip(fk, bi, strict=True)])
+
+        base = delta
+
+        def residuals(x: F64, fk: npt.NDArray[np.int_] = fk, mj: npt.NDArray[np.int_] = mj,
+                      obs: F64 = obs, base: float = base) -> F64:  # fmt: skip
+            # x: correction to ``base`` in ms (a small number: finite differences stay sane).
+            ref = vicon.at(t_dev[fk] + base + x[0] * 1e6)
+            pts = ref[np.arange(len(fk)), mj]
+            uvp, _ = project_points(pts, T, cam.K, cam.dist)
+            r: F64 = np.nan_to_num(uvp - obs, nan=50.0).ravel()
+            return r
+
+        sol = least_squares(residuals, [0.0], loss="soft_l1", f_scale=1.0, diff_step=1e-2)
+        delta = base + float(sol.x[0] * 1e6)
+        n_pairs = len(rows)
+        jtj = float(sol.jac[:, 0] @ sol.jac[:, 0])
+        s2 = float(np.mean(sol.fun**2))
+        sigma = math.sqrt(s2 / jtj) * 1e6 if jtj > 0 else math.inf
+    return delta, sigma, n_pairs
+
+
+@dataclass(frozen=True, slots=True)
+class _DavisPulses:
+    """A DAVIS's external-input edges and the D415 master they come from."""
+
+    device: str
+    edges_ns: I64
+    master: str | None
+    frame_delay_ns: int
+    note: str = ""
+
+
+def _davis_pulse_inputs(
+    rec: Recording, cams: Sequence[_Cam], sync_pulse_us: float
+) -> list[_DavisPulses]:
+    """The rising edges of every DAVIS's external input (DAVIS ns since its last timestamp
+    reset) and the D415 sync master (``sync_mode`` 1 in its device metadata) whose exposure
+    starts they mark, with that master's frame delay (half its exposure: a D415 stamps frames
+    mid-exposure). Rising-edge events (type 2) are used as they are; whole pulses (type 4,
+    stamped at the trailing edge) are moved back by ``sync_pulse_us``."""
+    from acquire.davis240c_decode import SpecialType
+
+    meta = rec.metadata()
+    master, delay, why = None, 0, ""
+    for cam in cams:
+        dev = meta.get(f"device/{cam.name}", {})
+        if dev.get("sync_mode") == "1":
+            master = cam.name
+            try:
+                delay = round(float(dev["options.exposure_us"]) * 500.0)
+            except (KeyError, ValueError):
+                master, why = None, f"{cam.name}'s metadata has no options.exposure_us"
+            break
+    else:
+        why = "no calibrated D415 is the sync master (device metadata sync_mode = 1)"
+    out = []
+    for t in sorted(rec.topics):
+        parts = t.strip("/").split("/")
+        if len(parts) != 3 or parts[0] != "davis" or parts[2] != "trigger":
+            continue
+        chunks: list[Any] = [np.asarray(p.specials) for _, p in rec.decoded(t)]
+        sp: Any = np.concatenate(chunks) if chunks else np.zeros(0)
+        note = why
+        edges = np.zeros(0, dtype=np.int64)
+        if sp.size:
+            ty = sp["type"].astype(np.int64)
+            tus = sp["t"].astype(np.int64)
+            resets = np.flatnonzero(ty == int(SpecialType.TIMESTAMP_RESET))
+            start = int(resets[-1]) + 1 if resets.size else 0
+            ty, tus = ty[start:], tus[start:]
+            rising = tus[ty == int(SpecialType.EXTERNAL_INPUT_RISING_EDGE)]
+            if rising.size:
+                edges = rising * 1000
+            else:
+                pulses = tus[ty == int(SpecialType.EXTERNAL_INPUT_PULSE)]
+                edges = pulses * 1000 - round(sync_pulse_us * 1000.0)
+        if not edges.size and not note:
+            note = "its trigger topic holds no external-input edges after the last reset"
+        out.append(_DavisPulses(f"davis/{parts[1]}", np.unique(edges), master, delay, note))
+    return out
+
+
+def _davis_clock(
+    pulses: _DavisPulses, master_first_ns: int, master_frames_ns: I64, master_map: ClockMapping
+) -> ClockMapping:
+    """The DAVIS → Vicon mapping through the master's pulses.
+
+    Pairing prior (a periodic train pairs equally well at every whole-period shift): the DAVIS's
+    first edge after its timestamp reset is the master's first recorded frame. That holds when
+    the DAVIS was reset and listening before the master's pulse train began (the recorder
+    starts the DAVIS first; the simulated rig resets it at session time 0 and starts the D415s
+    then) and is checked: the first edge must come ≥ 1.5 periods after the reset, else the
+    train was already running and the pairing is refused.
+
+    Raises:
+        CalibrationError: too few edges or frames, the train already running at the reset, or
+            a failed pulse fit (from ``clock_from_pulses``).
+    """
+    from calib.time_align import clock_from_pulses
+
+    edges = pulses.edges_ns
+    if edges.size < 10 or master_frames_ns.size < 10:
+        msg = (
+            f"cannot map {pulses.device} by pulses: {edges.size} external-input edges and "
+            f"{master_frames_ns.size} master frames; need 10 of each (is the D415 master's sync "
+            "output wired to the DAVIS trigger input, with edge or pulse detection on?)"
+        )
+        raise CalibrationError(msg)
+    period = float(np.median(np.diff(edges)))
+    if edges[0] < 1.5 * period:
+        msg = (
+            f"cannot map {pulses.device} by pulses: its first edge comes {edges[0] / 1e6:.1f} ms "
+            f"after its timestamp reset (< 1.5 periods of {period / 1e6:.1f} ms), so the pulse "
+            "train was already running and which pulse is which frame is unknown; start the "
+            "DAVIS (timestamp reset) before the D415 master streams"
+        )
+        raise CalibrationError(msg)
+    prior = int(master_first_ns - pulses.frame_delay_ns - int(edges[0]))
+    return clock_from_pulses(
+        pulses.device,
+        edges,
+        master_frames_ns,
+        d415_mapping=master_map,
+        frame_delay_ns=pulses.frame_delay_ns,
+        prior_offset_ns=prior,
+    )
+
+
+def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+    out: list[tuple[int, int]] = []
+    for lo, hi in sorted(windows):
+        if out and lo <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], hi))
+        else:
+            out.append((lo, hi))
+    return out
+
+
+def calibrate_vicon(
+    session_mcap: str | Path,
+    vicon_c3d: str | Path,
+    *,
+    options: CalibrationOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ViconCalibrationResult:
+    """Calibrate the D415s of a recording against a Vicon trial of the same session.
+
+    Args:
+        session_mcap: The recording (``mocaprig record``).
+        vicon_c3d: The Vicon trial (C3D or Nexus CSV).
+        options: :class:`CalibrationOptions`.
+        progress: Optional ``(done, total)`` callback.
+
+    Returns:
+        The calibration and its diagnostics.
+
+    Raises:
+        CalibrationError: unreadable inputs, wrong units, no static start, no clap, too few
+            markers, no alignment, or (without ``force``) a camera above the residual
+            thresholds; the message names the camera and the cause.
+    """
+    from calib.time_align import find_claps_vicon, vicon_times_ns
+    from calib.vicon import read_trajectories
+
+    opt = options or CalibrationOptions()
+    steps = 7
+    done = 0
+
+    def tick() -> None:
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, steps)
+
+    traj = read_trajectories(vicon_c3d, unit=opt.unit)
+    t_vicon = vicon_times_ns(traj)
+    vicon = vicon_static_start(
+        traj.positions_m,
+        traj.labels,
+        t_vicon,
+        tolerance_m=opt.static_tolerance_m,
+        source=str(vicon_c3d),
+    )
+    vicon_claps = find_claps_vicon(traj)
+    interp = _ViconInterp(t_vicon, traj.positions_m)
+    tick()
+    _log.info(
+        "Vicon: %d still frames, %d markers, claps at %s s (Vicon clock)",
+        vicon.n_frames,
+        len(vicon.labels),
+        [round(c.t_ns * 1e-9, 3) for c in vicon_claps],
+    )
+    try:
+        rec = Recording(Path(session_mcap))
+    except RecordingError as err:
+        msg = f"cannot read the recording {session_mcap}: {err}"
+        raise CalibrationError(msg) from err
+    registrations: dict[str, CameraRegistration] = {}
+    static_frames: dict[str, int] = {}
+    clock_fits: dict[str, tuple[F64, F64, F64]] = {}
+    clocks: list[ClockMapping] = []
+    notes: list[str] = []
+    with rec:
+        cams = _cameras(rec, opt.cameras, str(session_mcap))
+        fi_topics = [topic("d415", c.serial, "frame_info") for c in cams]
+        first_msg = next(iter(rec.messages(fi_topics)), None)
+        if first_msg is None:
+            msg = f"{session_mcap}: the D415 streams hold no frames"
+            raise CalibrationError(msg)
+        end_log = first_msg.log_time_ns + 1
+        while next(iter(rec.messages(fi_topics, start_ns=end_log)), None) is not None:
+            end_log = first_msg.log_time_ns + 2 * (end_log - first_msg.log_time_ns)
+        firsts: dict[str, _Probe] = {}
+        for c in cams:
+            fi = next(iter(rec.messages(topic("d415", c.serial, "frame_info"))), None)
+            p = None if fi is None else _probe(rec, c, fi.log_time_ns, 0)
+            if p is None:
+                msg = f"{session_mcap}: {c.name} has no frames"
+                raise CalibrationError(msg)
+            firsts[c.name] = _Probe(p.log_ns, p.dev_ns, p.counter)
+        head_ns = round(opt.head_window_s * 1e9)
+        head_windows = {c: (p.dev_ns, p.dev_ns + head_ns) for c, p in firsts.items()}
+        head = _read_device_window(rec, cams, head_windows, firsts, end_log)
+        tick()
+        poses: dict[str, F64] = {}
+        deltas: dict[str, int] = {}
+        t_onset_v = int(t_vicon[min(vicon.n_frames, len(t_vicon) - 1)])
+        for cam in cams:
+            frames = head[cam.name]
+            k0, n_still = _d415_static_frames(frames, opt.static_tolerance_px)
+            if n_still < opt.min_static_frames:
+                msg = (
+                    f"{cam.name}: no static start: {n_still} leading frames keep their blobs "
+                    f"within {opt.static_tolerance_px} px (need {opt.min_static_frames}; "
+                    f"{len(frames)} frames in the first {opt.head_window_s:g} s, "
+                    f"{max((f.n_markers for f in frames), default=0)} blobs at most); the "
+                    "actor must stand still for the first second"
+                )
+                raise CalibrationError(msg)
+            still = frames[k0 : k0 + n_still]
+            static_frames[cam.name] = n_still
+            reg = register_camera(
+                [f.uv_px for f in still],
+                [f.xyz_cam_m for f in still],
+                [vicon.cloud_m] * len(still),
+                K=cam.K,
+                distortion=cam.dist,
+                name=cam.name,
+                static_reference_m=vicon.cloud_m,
+                seed=opt.seed,
+            )
+            registrations[cam.name] = reg
+            poses[cam.name] = reg.T_world_cam
+            # Coarse clock: the motion onsets of both, then the reprojection cost on a grid.
+            onset_d = frames[min(k0 + n_still, len(frames) - 1)].t_dev_ns
+            prior = t_onset_v - onset_d
+            deltas[cam.name] = _grid_offset(
+                frames, reg.T_world_cam, cam, interp, prior,
+                half_width_ns=200_000_000, step_ns=2_000_000,
+            )  # fmt: skip
+        tick()
+        # Windows with motion across the session, in Vicon time, then per camera device time.
+        v_first = t_vicon[0]
+        span_ns = int(t_vicon[-1] - v_first)  # ≈ the session
+        windows_v = [(c.t_ns - 800_000_000, c.t_ns + 400_000_000) for c in vicon_claps]
+        for frac in opt.extra_windows:
+            mid = int(v_first) + round(frac * span_ns)
+            windows_v.append((mid - 300_000_000, mid + 300_000_000))
+        frames_all: dict[str, list[MarkerFrame]] = {c.name: list(head[c.name]) for c in cams}
+        for lo_v, hi_v in _merge_windows(windows_v):
+            dev_windows = {}
+            for c in cams:
+                lo = max(lo_v - deltas[c.name], head_windows[c.name][1])
+                dev_windows[c.name] = (lo, max(lo, hi_v - deltas[c.name]))
+            if all(lo >= hi for lo, hi in dev_windows.values()):
+                continue
+            got = _read_device_window(rec, cams, dev_windows, firsts, end_log)
+            for c in cams:
+                frames_all[c.name].extend(got[c.name])
+        davis_inputs = _davis_pulse_inputs(rec, cams, opt.sync_pulse_us)
+        tick()
+    # Clocks and final poses, per camera.
+    for cam in cams:
+        frames = frames_all[cam.name]
+        # Offsets per chunk of ≤ _CHUNK_NS of device time: a line through them gives the drift.
+        t_all = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
+        wins = (t_all - t_all.min()) // _CHUNK_NS
+        T = poses[cam.name]
+        mapping = None
+        for _ in range(2):
+            t_w, d_w, s_w = [], [], []
+            for w in np.unique(wins):
+                fw = [f for f, k in zip(frames, wins, strict=True) if k == w]
+                if mapping is None:
+                    d0 = _grid_offset(
+                        fw, T, cam, interp, deltas[cam.name], half_width_ns=20_000_000,
+                        step_ns=1_000_000,
+                    )  # fmt: skip
+                else:  # the first pass's line is good to ~1 ms: a fit suffices
+                    tm = int(np.median([f.t_dev_ns for f in fw]))
+                    d0 = int(mapping.to_reference_ns(tm)) - tm
+                d, s, n_pairs = _fit_offset(fw, T, cam, interp, d0)
+                _log.debug(
+                    "%s: frames at %d ns: offset %d ns ± %.0f ns (%d pairs)",
+                    cam.name, int(np.median([f.t_dev_ns for f in fw])), round(d), s, n_pairs,
+                )  # fmt: skip
+                if math.isfinite(s):
+                    t_w.append(float(np.median([f.t_dev_ns for f in fw])))
+                    d_w.append(d)
+                    s_w.append(s)
+            if not d_w:
+                msg = (
+                    f"{cam.name}: no time offset to the Vicon: its markers never matched the "
+                    "Vicon markers while moving (no motion in the windows read?)"
+                )
+                raise CalibrationError(msg)
+            mapping = _line_clock(cam.name, np.array(t_w), np.array(d_w), np.array(s_w))
+            clock_fits[cam.name] = (np.array(t_w), np.array(d_w), np.array(s_w))
+            if opt.clock_method == "claps+speed":
+                mapping = _time_align_clock(cam.name, frames, vicon_claps, traj, mapping)
+            t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
+            t_ref = mapping.to_reference_ns(t_dev)
+            refs = interp.at(t_ref)
+            # Fast markers carry the clock's error into the pose (1 ms at 1 m/s = 1 mm): the
+            # final bundle adjustment uses the markers slower than opt.max_marker_speed_m_s.
+            step = 5_000_000
+            speed = np.linalg.norm(interp.at(t_ref + step) - interp.at(t_ref - step), axis=2)
+            refs[speed / (2 * step * 1e-9) > opt.max_marker_speed_m_s] = np.nan
+            reg = register_camera(
+                [f.uv_px for f in frames],
+                [f.xyz_cam_m for f in frames],
+                list(refs),
+                K=cam.K,
+                distortion=cam.dist,
+                name=cam.name,
+                T_world_cam_init=T,
+                gates_px=(4.0, 2.5),
+                areas_px_frames=[f.area_px for f in frames] if opt.min_area_ratio > 0 else None,
+                min_area_ratio=opt.min_area_ratio,
+            )
+            T = reg.T_world_cam
+        registrations[cam.name] = dataclasses.replace(
+            reg, T_world_cam_coarse=registrations[cam.name].T_world_cam_coarse,
+            coarse_inliers=registrations[cam.name].coarse_inliers,
+            coarse_rms_m=registrations[cam.name].coarse_rms_m,
+        )  # fmt: skip
+        if mapping is not None:
+            clocks.append(mapping)
+    tick()
+    refused = tuple(
+        name
+        for name, r in registrations.items()
+        if r.bundle.reprojection_rms_px > opt.max_rms_px or r.bundle.n_inliers < opt.min_inliers
+    )
+    if refused and not opt.force:
+        figures = "; ".join(
+            f"{n}: {registrations[n].bundle.reprojection_rms_px:.2f} px RMS, "
+            f"{registrations[n].bundle.n_inliers} inliers"
+            for n in refused
+        )
+        msg = (
+            f"refusing the calibration: {figures} (thresholds: RMS ≤ {opt.max_rms_px} px, "
+            f"≥ {opt.min_inliers} inliers); check the markers and the Vicon file, or pass "
+            "--force to write it anyway"
+        )
+        raise CalibrationError(msg)
+    cameras = []
+    for cam in cams:
+        reg = registrations[cam.name]
+        stats = reg.residual_statistics()
+        k = next(c for c in clocks if c.device == cam.name)
+        stats["clock_offset_sigma_ns"] = k.offset_sigma_ns
+        stats = {key: v for key, v in stats.items() if math.isfinite(v)}
+        cameras.append(
+            CameraCalibration(
+                name=cam.name,
+                kind="d415",
+                serial=cam.serial,
+                width=cam.width,
+                height=cam.height,
+                K=cam.K,
+                distortion=cam.dist,
+                T_world_cam=reg.T_world_cam,
+                residuals=stats,
+                source="vicon",
+            )
+        )
+    for dp in davis_inputs:
+        master_map = next((k for k in clocks if k.device == dp.master), None)
+        if dp.master is None or master_map is None or dp.note:
+            notes.append(f"{dp.device}: no clock mapping: {dp.note}")
+            continue
+        try:
+            dmap = _davis_clock(
+                dp,
+                firsts[dp.master].dev_ns,
+                np.unique(np.array([f.t_dev_ns for f in frames_all[dp.master]], dtype=np.int64)),
+                master_map,
+            )
+        except CalibrationError as err:
+            notes.append(f"{dp.device}: no clock mapping: {err}")
+            _log.warning("%s", err)
+            continue
+        dmap = dataclasses.replace(dmap, method=f"pulses via {dp.master}")
+        clocks.append(dmap)
+        notes.append(
+            f"{dp.device}: clock from the {dp.master} sync pulses on its trigger input "
+            f"(DAVIS ns since its last timestamp reset → Vicon), ±{dmap.offset_sigma_ns / 1e3:.1f}"
+            " µs; extrinsics come from `mocaprig calibrate board`"
+        )
+    if not davis_inputs:
+        notes.append(
+            "DAVIS: not in the recording (no /davis/<serial>/trigger): no DAVIS clock mapping"
+        )
+    rms = [r.bundle.reprojection_rms_px for r in registrations.values()]
+    cal = Calibration(
+        cameras=tuple(cameras),
+        clocks=tuple(clocks),
+        reference_clock="vicon",
+        world_frame="vicon",
+        statistics={
+            "cameras": float(len(cameras)),
+            "max_reprojection_rms_px": float(max(rms)),
+            "vicon_static_frames": float(vicon.n_frames),
+            "vicon_claps": float(len(vicon_claps)),
+            "max_rms_threshold_px": float(opt.max_rms_px),
+            "forced": float(bool(refused)),
+        },
+        software_version=__version__,
+        created_utc=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    )
+    tick()
+    return ViconCalibrationResult(
+        calibration=cal,
+        registrations=registrations,
+        static_frames=static_frames,
+        vicon=vicon,
+        refused=refused,
+        notes=tuple(notes),
+        vicon_claps=tuple(vicon_claps),
+        clock_fits=clock_fits,
+    )
+
+
+def _time_align_clock(
+    device: str,
+    frames: Sequence[MarkerFrame],
+    vicon_claps: Sequence[ClapDetection],
+    traj: MarkerTrajectories,
+    prior: ClockMapping,
+) -> ClockMapping:
+    """The clock from :mod:`calib.time_align`: the camera's claps paired with the Vicon's
+    (offset, and drift from two claps), then refined by the marker-speed correlation over the
+    frames read. Falls back to ``prior`` (the reprojection clock) for a step that fails, and
+    says so in the log."""
+    from calib.time_align import (
+        clock_from_claps,
+        find_claps_d415,
+        refine_by_speed,
+        speed_from_frames,
+        speed_from_trajectories,
+    )
+
+    mapping = prior
+    try:
+        claps = find_claps_d415(frames, device=device)
+        mapping = clock_from_claps(device, claps, vicon_claps)
+    except CalibrationError as err:
+        _log.warning("%s: clap clock unavailable (%s); keeping the reprojection clock", device, err)
+    a = prior.anchor_ns
+    if abs(int(mapping.to_reference_ns(a)) - int(prior.to_reference_ns(a))) > 50_000_000:
+        _log.warning("%s: the clap clock disagrees with the reprojection clock by > 50 ms", device)
+        mapping = prior
+    try:
+        td, vd = speed_from_frames(frames)
+        tr, vr = speed_from_trajectories(traj)
+        mapping = refine_by_speed(mapping, td, vd, tr, vr, search_ns=20_000_000)
+    except CalibrationError as err:
+        _log.warning("%s: speed refinement failed (%s)", device, err)
+    return mapping
+
+
+def _line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMapping:
+    """A device → Vicon mapping through per-window offsets: a weighted line (offset + drift)
+    when the windows span ≥ 5 s, else the weighted mean offset with no drift."""
+    w = 1.0 / np.maximum(sigma_ns, 1.0) ** 2
+    anchor = round(float((w * t_dev).sum() / w.sum()))
+    x = (t_dev - anchor) * 1e-9
+    if len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9:
+        A = np.stack([np.ones_like(x), x], axis=1)
+        cov = np.linalg.inv(A.T @ (A * w[:, None]))
+        coef = cov @ (A.T @ (w * delta_ns))
+        res = delta_ns - A @ coef
+        chi2 = float((w * res**2).sum()) / max(len(x) - 2, 1)
+        cov = cov * max(chi2, 1.0)
+        return ClockMapping(
+            device=device,
+            reference="vicon",
+            offset_ns=round(float(coef[0])),
+            drift_ppm=float(coef[1]) * 1e-3,
+            anchor_ns=anchor,
+            offset_sigma_ns=math.sqrt(cov[0, 0]),
+            drift_sigma_ppm=math.sqrt(cov[1, 1]) * 1e-3,
+            method="reprojection",
+        )
+    mean = float((w * delta_ns).sum() / w.sum())
+    return ClockMapping(
+        device=device,
+        reference="vicon",
+        offset_ns=round(mean),
+        drift_ppm=0.0,
+        anchor_ns=anchor,
+        offset_sigma_ns=math.sqrt(1.0 / w.sum()),
+        method="reprojection",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Attachment
+# --------------------------------------------------------------------------------------------
+
+
+def attach_calibration(
+    source: str | Path, output: str | Path, cal: Calibration, *, overwrite: bool = False
+) -> Path:
+    """Write a copy of a recording with the calibration attached as :data:`ATTACHMENT_NAME`.
+
+    MCAP files are append-only once finished, so the recording is rewritten: every schema,
+    channel, message (chunked, lz4), metadata record and attachment is copied, an older
+    ``calibration.toml`` attachment is replaced, and the new one added.
+
+    Raises:
+        CalibrationError: ``output`` exists and ``overwrite`` is False, ``output`` is the
+            source, or the source cannot be read.
+    """
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    src, dst = Path(source), Path(output)
+    if dst.exists() and dst.resolve() == src.resolve():
+        msg = f"{dst}: --attach-to must name a new file, not the recording itself"
+        raise CalibrationError(msg)
+    if dst.exists() and not overwrite:
+        msg = f"{dst} exists; pass --overwrite to replace it"
+        raise CalibrationError(msg)
+    part = dst.with_name(dst.name + ".part")
+    try:
+        with src.open("rb") as fin, part.open("wb") as fout:
+            reader = make_reader(fin)
+            summary = reader.get_summary()
+            header = reader.get_header()
+            w = Writer(fout, compression=CompressionType.LZ4)
+            w.start(profile=header.profile, library=header.library)
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            if summary is not None:
+                for sid, sch in summary.schemas.items():
+                    schema_ids[sid] = w.register_schema(sch.name, sch.encoding, sch.data)
+                for ch_id, ch in summary.channels.items():
+                    channel_ids[ch_id] = w.register_channel(
+                        ch.topic,
+                        ch.message_encoding,
+                        schema_ids.get(ch.schema_id, 0),
+                        dict(ch.metadata),
+                    )
+            for meta in reader.iter_metadata():
+                w.add_metadata(meta.name, dict(meta.metadata))
+            for att in reader.iter_attachments():
+                if att.name == ATTACHMENT_NAME:
+                    continue
+                w.add_attachment(
+                    create_time=att.create_time,
+                    log_time=att.log_time,
+                    name=att.name,
+                    media_type=att.media_type,
+                    data=att.data,
+                )
+            now = _dt.datetime.now(_dt.UTC)
+            t_ns = int(now.timestamp() * 1e9)
+            w.add_attachment(
+                create_time=t_ns,
+                log_time=t_ns,
+                name=ATTACHMENT_NAME,
+                media_type="application/toml",
+                data=calibration_bytes(cal),
+            )
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
+                cid = channel_ids.get(channel.id)
+                if cid is None:
+                    sid = 0
+                    if schema is not None:
+                        if schema.id not in schema_ids:
+                            schema_ids[schema.id] = w.register_schema(
+                                schema.name, schema.encoding, schema.data
+                            )
+                        sid = schema_ids[schema.id]
+                    cid = w.register_channel(
+                        channel.topic, channel.message_encoding, sid, dict(channel.metadata)
+                    )
+                    channel_ids[channel.id] = cid
+                w.add_message(
+                    channel_id=cid,
+                    log_time=message.log_time,
+                    publish_time=message.publish_time,
+                    data=message.data,
+                    sequence=message.sequence,
+                )
+            w.finish()  # type: ignore[no-untyped-call]
+    except Exception as err:
+        part.unlink(missing_ok=True)
+        if isinstance(err, CalibrationError):
+            raise
+        msg = f"cannot attach the calibration: copying {src} to {dst} failed: {err}"
+        raise CalibrationError(msg) from err
+    part.replace(dst)
+    return dst
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation against a simulated session's truth
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceEvaluation:
+    """Errors of one device against the truth (NaN where the calibration lacks that part).
+
+    Attributes:
+        device: The calibration's label (``"d415/<serial>"``, ``"davis/<serial>"``).
+        truth_name: The simulated world's name of the device (``"d415-0"``, ``"davis"``).
+        rotation_error_deg: Angle between calibrated and true camera orientation (deg).
+        translation_error_mm: Distance between calibrated and true camera centres (mm).
+        clock_offset_error_ms: Mapped minus true Vicon time at the session midpoint (ms).
+        drift_error_ppm: Calibrated minus true drift (ppm).
+        clock_error_vs_via_us: For a mapping derived through another device's (method
+            ``"pulses via <device>"``): its offset error minus that device's, i.e. the error of
+            the DAVIS ↔ D415 mapping itself (µs); NaN otherwise.
+    """
+
+    device: str
+    truth_name: str
+    rotation_error_deg: float = math.nan
+    translation_error_mm: float = math.nan
+    clock_offset_error_ms: float = math.nan
+    drift_error_ppm: float = math.nan
+    clock_error_vs_via_us: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class Evaluation:
+    """A calibration scored against truth.
+
+    Attributes:
+        truth_dir: The session folder read.
+        devices: One entry per device found in both.
+        missing: Truth devices the calibration does not describe.
+    """
+
+    truth_dir: str
+    devices: tuple[DeviceEvaluation, ...]
+    missing: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON-able view (NaN → null in ``emit_json``)."""
+        return {
+            "truth": self.truth_dir,
+            "devices": [
+                {
+                    "device": d.device,
+                    "truth_name": d.truth_name,
+                    "rotation_error_deg": d.rotation_error_deg,
+                    "translation_error_mm": d.translation_error_mm,
+                    "clock_offset_error_ms": d.clock_offset_error_ms,
+                    "drift_error_ppm": d.drift_error_ppm,
+                    "clock_error_vs_via_us": d.clock_error_vs_via_us,
+                }
+                for d in self.devices
+            ],
+            "missing": list(self.missing),
+        }
+
+
+def _read_scenario(truth_dir: Path) -> dict[str, Any]:
+    for cand in (truth_dir / "truth" / "scenario.json", truth_dir / "scenario.json"):
+        if cand.is_file():
+            try:
+                data: dict[str, Any] = json.loads(cand.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as err:
+                msg = f"cannot read the truth file {cand}: {err}"
+                raise CalibrationError(msg) from err
+            return data
+    msg = (
+        f"{truth_dir}: no truth/scenario.json; give the folder `mocaprig simulate --out` wrote "
+        "(or its truth/ folder)"
+    )
+    raise CalibrationError(msg)
+
+
+def _read_davis_clock(root: Path) -> dict[str, Any] | None:
+    """``truth/davis_clock.json`` (the recorded DAVIS time base), or None when absent."""
+    for cand in (root / "truth" / "davis_clock.json", root / "davis_clock.json"):
+        if cand.is_file():
+            try:
+                data: dict[str, Any] = json.loads(cand.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as err:
+                msg = f"cannot read the truth file {cand}: {err}"
+                raise CalibrationError(msg) from err
+            return data
+    return None
+
+
+def _true_clock_error_ns(
+    mapping: ClockMapping,
+    dev: Mapping[str, Any],
+    vic: Mapping[str, Any],
+    t_mid_ns: int,
+    wraps: bool,
+) -> tuple[float, float]:
+    """(offset error ns at the session midpoint, drift error ppm) of a device → Vicon mapping."""
+    a = float(dev["drift_ppm"]) * 1e-6
+    b = float(vic["drift_ppm"]) * 1e-6
+    dev_mid = int(dev["offset_ns"]) + round(t_mid_ns * (1.0 + a))
+    ref_mid = int(vic["offset_ns"]) + round(t_mid_ns * (1.0 + b))
+    candidates = [dev_mid]
+    if wraps:  # a D415's u32 µs clock: the recording's device ns may lack whole wraps
+        candidates = [dev_mid - k * _U32_NS for k in range(dev_mid // _U32_NS + 1)]
+    errs = [float(mapping.to_reference_ns(c) - ref_mid) for c in candidates]
+    # The mapped device time may be on any wrap; the right one is the closest.
+    err = min(errs, key=abs)
+    drift_true = ((1.0 + b) / (1.0 + a) - 1.0) * 1e6
+    return err, mapping.drift_ppm - drift_true
+
+
+def evaluate_calibration(cal: Calibration, truth_dir: str | Path) -> Evaluation:
+    """Score a calibration against a simulated session's truth.
+
+    Per device found in both (matched by serial): rotation error (deg) and camera-centre error
+    (mm) of ``T_world_cam``; for each clock mapping, the error of the mapped Vicon time at the
+    session midpoint (ms) and of the drift (ppm). Truth clocks: ``device_ns = offset_ns +
+    t·(1 + drift_ppm·1e-6)``, Vicon likewise; a D415's device time is its u32 µs hardware clock,
+    so the wrap closest to the mapping is used. A DAVIS's recorded time restarts at its
+    timestamp reset: it is scored against ``truth/davis_clock.json`` (written by ``mocaprig
+    simulate`` with a recording: ``(t − reset_session_ns)·(1 + drift_ppm·1e-6)``); without that
+    file its clock error is NaN (the free-running clock of ``scenario.json`` is not what the
+    recording holds).
+
+    Raises:
+        CalibrationError: the truth folder is unreadable.
+    """
+    root = Path(truth_dir)
+    sc = _read_scenario(root)
+    rig = sc.get("rig", {})
+    clocks = {c["name"]: c for c in sc.get("clocks", [])}
+    t_mid = int(sc.get("duration_ns", 0)) // 2
+    davis_base = _read_davis_clock(root)
+    entries: list[tuple[str, str, str, Any]] = []  # (label, truth name, kind, T_world_cam)
+    for d in rig.get("d415", []):
+        entries.append((f"d415/{d['serial']}", d["name"], "d415", d["ir_left"]["T_world_cam"]))
+    dv = rig.get("davis")
+    if dv:
+        entries.append(
+            (f"davis/{dv['serial']}", dv.get("name", "davis"), "davis", dv["camera"]["T_world_cam"])
+        )
+    out: list[DeviceEvaluation] = []
+    missing: list[str] = []
+    cam_names = {c.name for c in cal.cameras}
+    clock_names = {c.device for c in cal.clocks}
+    for label, name, kind, T_true in entries:
+        if label not in cam_names and label not in clock_names:
+            missing.append(label)
+            continue
+        rot = tr = off = drift = math.nan
+        if label in cam_names:
+            T = cal.camera(label).T_world_cam
+            Tt = np.asarray(T_true, dtype=np.float64)
+            rot = rotation_error_deg(T, Tt)
+            tr = 1e3 * float(np.linalg.norm(T[:3, 3] - Tt[:3, 3]))
+        dev_clock: Mapping[str, Any] | None = clocks.get(name)
+        if kind == "davis":
+            dev_clock = None
+            if davis_base is not None and davis_base.get("device") in (None, label):
+                a = float(davis_base["drift_ppm"]) * 1e-6
+                reset = int(davis_base["reset_session_ns"])
+                dev_clock = {"offset_ns": -round(reset * (1.0 + a)), "drift_ppm": a * 1e6}
+        if label in clock_names and dev_clock is not None and "vicon" in clocks:
+            err_ns, drift = _true_clock_error_ns(
+                cal.clock(label), dev_clock, clocks["vicon"], t_mid, wraps=kind == "d415"
+            )
+            off = err_ns / 1e6
+        out.append(DeviceEvaluation(label, name, rot, tr, off, drift))
+    by_label = {d.device: d for d in out}
+    for i, d in enumerate(out):
+        if d.device not in clock_names:
+            continue
+        method = cal.clock(d.device).method
+        via = by_label.get(method.split(" via ", 1)[1]) if " via " in method else None
+        if via is not None:
+            rel = 1e3 * (d.clock_offset_error_ms - via.clock_offset_error_ms)
+            out[i] = dataclasses.replace(d, clock_error_vs_via_us=rel)
+    return Evaluation(truth_dir=str(root), devices=tuple(out), missing=tuple(missing))
