@@ -21,8 +21,10 @@ Across cameras: :func:`to_world` (camera → world with ``T_world_cam``), :func:
 ``radius_m`` merged into their mean, single-linkage through ``scipy.spatial.cKDTree``).
 
 :func:`measure_recording` runs :func:`measure_frame` over the D415 streams of a recording
-(``/d415/<serial>/{ir,depth,frame_info,camera_info}``), optionally over a device-time window
-and every n-th frame only, so calibration can measure just what it needs.
+(``/d415/<serial>/{ir,depth,frame_info,camera_info}``), optionally over a device-time window,
+every n-th frame, or only the frames listed by device time, so calibration and replay measure
+just what they need; :func:`frame_times` lists every frame's device time without decoding an
+image (to pick frames by time across cameras).
 
 Units: pixels for image positions, metres for 3-D points, integer ns for device times.
 """
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -53,6 +55,7 @@ __all__ = [
     "MarkerFrame",
     "crop_volume",
     "detect_blobs",
+    "frame_times",
     "measure_frame",
     "measure_recording",
     "merge_views",
@@ -62,6 +65,7 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
 
 #: IR level (0..255) above which a pixel belongs to a marker blob.
 DEFAULT_THRESHOLD: Final = 200
@@ -417,6 +421,7 @@ def measure_recording(
     cameras: Sequence[str] | None = None,
     t_range_ns: tuple[int, int] | None = None,
     every: int = 1,
+    frames_t_dev_ns: Mapping[str, Collection[int]] | None = None,
     progress: bool = False,
     threshold: int = DEFAULT_THRESHOLD,
     min_area_px: int = DEFAULT_MIN_AREA_PX,
@@ -426,10 +431,16 @@ def measure_recording(
 
     Args:
         rec: An open recording.
-        cameras: ``"d415/<serial>"`` labels (or bare serials); None = every D415 in it.
+        cameras: ``"d415/<serial>"`` labels (or bare serials); None = every D415 in it, or the
+            cameras of ``frames_t_dev_ns`` when that is given.
         t_range_ns: ``(start, end)`` device time window (each camera's own clock, ns, end
             excluded); None = all frames.
         every: Measure every n-th frame of the window (by frame order).
+        frames_t_dev_ns: Per camera label (or bare serial), the device times (ns, as
+            :func:`frame_times` gives them) of the only frames to measure; ``t_range_ns`` and
+            ``every`` then apply to those. A camera without an entry is measured in full.
+            Lets a caller pick frames by time across cameras (frame order differs between
+            cameras once one drops a frame).
         progress: Draw a progress bar on stderr.
         threshold, min_area_px, max_area_px: Blob detection (:func:`detect_blobs`).
 
@@ -448,10 +459,11 @@ def measure_recording(
         msg = f"t_range_ns must be (start, end) with start < end (ns), got {t_range_ns!r}"
         raise ValidationError(msg)
     available = _d415_cameras(rec)
+    keep = {_label(c): set(v) for c, v in (frames_t_dev_ns or {}).items()}
     if cameras is None:
-        wanted = available
+        wanted = list(keep) if frames_t_dev_ns is not None else available
     else:
-        wanted = [c if c.startswith("d415/") else f"d415/{c}" for c in cameras]
+        wanted = [_label(c) for c in cameras]
     missing = [c for c in wanted if c not in available]
     if missing:
         msg = (
@@ -462,7 +474,7 @@ def measure_recording(
 
     plans: dict[str, _Plan] = {}
     for cam in wanted:
-        plans[cam] = _plan_camera(rec, cam, t_range_ns, int(every))
+        plans[cam] = _plan_camera(rec, cam, t_range_ns, int(every), keep.get(cam))
     total = sum(len(p.counters) for p in plans.values())
     bar: Callable[[int, int], None] | None = ProgressBar("markers") if progress else None
     out: dict[str, list[MarkerFrame]] = {cam: [] for cam in wanted}
@@ -528,7 +540,48 @@ class _Plan:
     log_hi: int = 0
 
 
-def _plan_camera(rec: Recording, cam: str, t_range_ns: tuple[int, int] | None, every: int) -> _Plan:
+def _label(camera: str) -> str:
+    return camera if camera.startswith("d415/") else f"d415/{camera}"
+
+
+def frame_times(rec: Recording, *, cameras: Sequence[str] | None = None) -> dict[str, I64]:
+    """Device times of every frame of the D415 streams of a recording, no image decoded.
+
+    Args:
+        rec: An open recording.
+        cameras: ``"d415/<serial>"`` labels (or bare serials); None = every D415 in it.
+
+    Returns:
+        ``{"d415/<serial>": t_dev_ns (F,) int64}``, ascending: the times
+        :func:`measure_recording` gives its frames (``MarkerFrame.t_dev_ns``), so a subset can
+        be passed back as its ``frames_t_dev_ns``.
+
+    Raises:
+        CalibrationError: a camera is not in the recording, or has no ``camera_info``.
+    """
+    available = _d415_cameras(rec)
+    wanted = available if cameras is None else [_label(c) for c in cameras]
+    missing = [c for c in wanted if c not in available]
+    if missing:
+        msg = (
+            f"{rec.path}: no D415 stream {missing[0]!r} (looked for its ir topic); "
+            f"D415 cameras in the recording: {available or 'none'}"
+        )
+        raise CalibrationError(msg)
+    out: dict[str, I64] = {}
+    for cam in wanted:
+        plan = _plan_camera(rec, cam, None, 1, None)
+        out[cam] = np.sort(np.array([t for _, t in plan.wanted_seq.values()], dtype=np.int64))
+    return out
+
+
+def _plan_camera(
+    rec: Recording,
+    cam: str,
+    t_range_ns: tuple[int, int] | None,
+    every: int,
+    keep: Collection[int] | None,
+) -> _Plan:
     serial = cam.split("/", 1)[1]
     info_topic = topic("d415", serial, "camera_info")
     if info_topic not in rec.channels:
@@ -573,6 +626,8 @@ def _plan_camera(rec: Recording, cam: str, t_range_ns: tuple[int, int] | None, e
     sel = []
     for i in order:
         t = int(t_dev[i])
+        if keep is not None and t not in keep:
+            continue
         if t_range_ns is None or int(t_range_ns[0]) <= t < int(t_range_ns[1]):
             sel.append(int(i))
     sel = sel[::every]

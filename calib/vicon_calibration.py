@@ -12,8 +12,10 @@
 3. **Registration** per camera on its static start (blobs still within
    ``static_tolerance_px``): :func:`calib.registration.register_camera` (coarse alignment without
    an initial pose, gated matching, bundle adjustment).
-4. **Clock** per camera (``clock_method``): reprojection offsets of 0.5 s stretches of frames and
-   a line through them (offset, drift), optionally refined by ``calib.time_align``.
+4. **Clock** (``clock_method``): reprojection offsets of 0.5 s stretches of frames per camera;
+   the cameras whose frames pair with one another's (hardware sync, checked, not assumed) share
+   one line through all their stretches (offset, drift) composed with each camera's tie to the
+   pivot camera (:func:`_pooled_clocks`); optionally refined by ``calib.time_align``.
 5. **Final bundle adjustment** over all frames read, the Vicon markers interpolated at each
    frame's mapped time (fast markers and partly occluded blobs left out); clock and pose are
    iterated twice.
@@ -443,18 +445,17 @@ def _read_frames(
         lo, hi = dev_windows[cam.name]
         if not lo <= t_dev < hi:
             continue
-        out[cam.name].append(
-            measure_frame(
-                slot["ir"].decode().image,
-                slot["depth"].decode().image,
-                cam.K,
-                depth_scale_m=float(fi.depth_scale_m) or 0.001,
-                camera=cam.name,
-                t_dev_ns=t_dev,
-                frame_counter=int(fi.frame_counter),
-                distortion=cam.dist,
-            )
+        mf = measure_frame(
+            slot["ir"].decode().image,
+            slot["depth"].decode().image,
+            cam.K,
+            depth_scale_m=float(fi.depth_scale_m) or 0.001,
+            camera=cam.name,
+            t_dev_ns=t_dev,
+            frame_counter=int(fi.frame_counter),
+            distortion=cam.dist,
         )
+        out[cam.name].append(mf)
     for frames in out.values():
         frames.sort(key=lambda f: f.t_dev_ns)
     return out
@@ -868,47 +869,36 @@ def calibrate_vicon(
                 frames_all[c.name].extend(got[c.name])
         davis_inputs = _davis_pulse_inputs(rec, cams, opt.sync_pulse_us)
         tick()
-    # Clocks and final poses, per camera.
-    for cam in cams:
-        frames = frames_all[cam.name]
-        # Offsets per chunk of ≤ _CHUNK_NS of device time: a line through them gives the drift.
-        t_all = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
-        wins = (t_all - t_all.min()) // _CHUNK_NS
-        T = poses[cam.name]
-        mapping = None
-        for _ in range(2):
-            t_w, d_w, s_w = [], [], []
-            for w in np.unique(wins):
-                fw = [f for f, k in zip(frames, wins, strict=True) if k == w]
-                if mapping is None:
-                    d0 = _grid_offset(
-                        fw, T, cam, interp, deltas[cam.name], half_width_ns=20_000_000,
-                        step_ns=1_000_000,
-                    )  # fmt: skip
-                else:  # the first pass's line is good to ~1 ms: a fit suffices
-                    tm = int(np.median([f.t_dev_ns for f in fw]))
-                    d0 = int(mapping.to_reference_ns(tm)) - tm
-                d, s, n_pairs = _fit_offset(fw, T, cam, interp, d0)
-                _log.debug(
-                    "%s: frames at %d ns: offset %d ns ± %.0f ns (%d pairs)",
-                    cam.name, int(np.median([f.t_dev_ns for f in fw])), round(d), s, n_pairs,
-                )  # fmt: skip
-                if math.isfinite(s):
-                    t_w.append(float(np.median([f.t_dev_ns for f in fw])))
-                    d_w.append(d)
-                    s_w.append(s)
-            if not d_w:
-                msg = (
-                    f"{cam.name}: no time offset to the Vicon: its markers never matched the "
-                    "Vicon markers while moving (no motion in the windows read?)"
-                )
-                raise CalibrationError(msg)
-            mapping = _line_clock(cam.name, np.array(t_w), np.array(d_w), np.array(s_w))
-            clock_fits[cam.name] = (np.array(t_w), np.array(d_w), np.array(s_w))
+    # Clocks and final poses, iterated twice: per-camera stretch offsets, then one pooled clock
+    # line for the hardware-synchronised cameras, then each camera's bundle adjustment.
+    mappings: dict[str, ClockMapping] = {}
+    for _ in range(2):
+        own: dict[str, ClockMapping] = {}
+        for cam in cams:
+            t_w, d_w, s_w = _stretch_offsets(
+                cam, frames_all[cam.name], poses[cam.name], interp, deltas[cam.name],
+                mappings.get(cam.name),
+            )  # fmt: skip
+            clock_fits[cam.name] = (t_w, d_w, s_w)
+            own[cam.name] = _line_clock(cam.name, t_w, d_w, s_w)
+        stamps = {
+            c.name: np.array([f.t_dev_ns for f in frames_all[c.name]], dtype=np.int64) for c in cams
+        }
+        counters = {
+            c.name: np.array([f.frame_counter for f in frames_all[c.name]], dtype=np.int64)
+            for c in cams
+        }
+        mappings, pool_notes = _pooled_clocks(
+            {c.name: (stamps[c.name], counters[c.name]) for c in cams}, clock_fits, own
+        )
+        for cam in cams:
             if opt.clock_method == "claps+speed":
-                mapping = _time_align_clock(cam.name, frames, vicon_claps, traj, mapping)
+                mappings[cam.name] = _time_align_clock(
+                    cam.name, frames_all[cam.name], vicon_claps, traj, mappings[cam.name]
+                )
+            frames = frames_all[cam.name]
             t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
-            t_ref = mapping.to_reference_ns(t_dev)
+            t_ref = mappings[cam.name].to_reference_ns(t_dev)
             refs = interp.at(t_ref)
             # Fast markers carry the clock's error into the pose (1 ms at 1 m/s = 1 mm): the
             # final bundle adjustment uses the markers slower than opt.max_marker_speed_m_s.
@@ -922,19 +912,19 @@ def calibrate_vicon(
                 K=cam.K,
                 distortion=cam.dist,
                 name=cam.name,
-                T_world_cam_init=T,
+                T_world_cam_init=poses[cam.name],
                 gates_px=(4.0, 2.5),
                 areas_px_frames=[f.area_px for f in frames] if opt.min_area_ratio > 0 else None,
                 min_area_ratio=opt.min_area_ratio,
             )
-            T = reg.T_world_cam
-        registrations[cam.name] = dataclasses.replace(
-            reg, T_world_cam_coarse=registrations[cam.name].T_world_cam_coarse,
-            coarse_inliers=registrations[cam.name].coarse_inliers,
-            coarse_rms_m=registrations[cam.name].coarse_rms_m,
-        )  # fmt: skip
-        if mapping is not None:
-            clocks.append(mapping)
+            poses[cam.name] = reg.T_world_cam
+            registrations[cam.name] = dataclasses.replace(
+                reg, T_world_cam_coarse=registrations[cam.name].T_world_cam_coarse,
+                coarse_inliers=registrations[cam.name].coarse_inliers,
+                coarse_rms_m=registrations[cam.name].coarse_rms_m,
+            )  # fmt: skip
+    notes.extend(pool_notes)
+    clocks.extend(mappings[c.name] for c in cams)
     tick()
     refused = tuple(
         name
@@ -1031,6 +1021,268 @@ def calibrate_vicon(
     )
 
 
+def _stretch_offsets(
+    cam: _Cam,
+    frames: Sequence[MarkerFrame],
+    T: F64,
+    interp: _ViconInterp,
+    delta0_ns: int,
+    mapping: ClockMapping | None,
+) -> tuple[F64, F64, F64]:
+    """Device → Vicon offsets of stretches of ≤ ``_CHUNK_NS`` of frames.
+
+    Returns ``(t_dev (S,), offset (S,), σ (S,))`` in ns, stretches without a finite offset left
+    out. Without ``mapping`` each stretch starts from a grid search around ``delta0_ns``; with
+    one (good to ~1 ms) a fit from the mapped offset suffices.
+
+    Raises:
+        CalibrationError: no stretch gives an offset (no motion seen in the windows read).
+    """
+    t_all = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
+    wins = (t_all - t_all.min()) // _CHUNK_NS if len(t_all) else t_all
+    t_w, d_w, s_w = [], [], []
+    for w in np.unique(wins):
+        fw = [f for f, k in zip(frames, wins, strict=True) if k == w]
+        if mapping is None:
+            d0 = _grid_offset(
+                fw, T, cam, interp, delta0_ns, half_width_ns=20_000_000, step_ns=1_000_000
+            )
+        else:
+            tm = int(np.median([f.t_dev_ns for f in fw]))
+            d0 = int(mapping.to_reference_ns(tm)) - tm
+        d, s, n_pairs = _fit_offset(fw, T, cam, interp, d0)
+        _log.debug(
+            "%s: frames at %d ns: offset %d ns ± %.0f ns (%d pairs)",
+            cam.name, int(np.median([f.t_dev_ns for f in fw])), round(d), s, n_pairs,
+        )  # fmt: skip
+        if math.isfinite(s):
+            t_w.append(float(np.median([f.t_dev_ns for f in fw])))
+            d_w.append(d)
+            s_w.append(s)
+    if not d_w:
+        msg = (
+            f"{cam.name}: no time offset to the Vicon: its markers never matched the "
+            "Vicon markers while moving (no motion in the windows read?)"
+        )
+        raise CalibrationError(msg)
+    return np.array(t_w), np.array(d_w), np.array(s_w)
+
+
+#: Largest RMS (ns) of a camera's frame times about a line through the pivot camera's frame
+#: times for the two to count as hardware-synchronised (the D415's sync jitter is µs-level;
+#: a free-running slave slides through a whole frame period).
+_SYNC_RMS_NS: Final = 100_000
+
+
+@dataclass(frozen=True, slots=True)
+class _Tie:
+    """Camera c's device time on the pivot's: ``t_p = t_c + a_ns + s·(t_c − centre_ns)``."""
+
+    a_ns: float
+    s: float
+    centre_ns: float
+    pairs: int
+    rms_ns: float
+    counter_shift: int
+
+
+def _tie_by_counters(t_c: I64, n_c: I64, t_p: I64, n_p: I64, shift: int) -> _Tie | None:
+    """The line through the frames with ``counter_c − counter_p == shift`` (ns), or None
+    without 10 such pairs over ≥ 5 s or with an RMS above :data:`_SYNC_RMS_NS`."""
+    idx = {int(n): k for k, n in enumerate(n_p)}
+    kc, kp = [], []
+    for k, n in enumerate(n_c):
+        m = idx.get(int(n) - shift)
+        if m is not None:
+            kc.append(k)
+            kp.append(m)
+    if len(kc) < 10:
+        return None
+    x = t_c[kc].astype(np.float64)
+    if np.ptp(x) < 5e9:
+        return None
+    centre = float(np.mean(x))
+    y = (t_p[kp] - t_c[kc]).astype(np.float64)
+    A = np.stack([np.ones_like(x), (x - centre) * 1e-9], axis=1)
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    rms = float(np.sqrt(np.mean((y - A @ coef) ** 2)))
+    if rms > _SYNC_RMS_NS:
+        return None
+    return _Tie(float(coef[0]), float(coef[1]) * 1e-9, centre, len(kc), rms, shift)
+
+
+def _pooled_clocks(
+    frames: Mapping[str, tuple[I64, I64]],
+    fits: Mapping[str, tuple[F64, F64, F64]],
+    own: Mapping[str, ClockMapping],
+) -> tuple[dict[str, ClockMapping], list[str]]:
+    """One Vicon clock line through the stretch offsets of every hardware-synchronised camera.
+
+    Slaves capture on the master's pulses, so frame k of a slave and frame k + shift of the
+    pivot camera (the one whose own line is best determined) are the same instant: a line
+    through their device times ties each camera's clock to the pivot's to well under a µs and
+    0.1 ppm (frame counters pair the frames: host arrival times cannot be relied on, and a
+    camera's own Vicon line can be off by more than a frame period). The counter shift is
+    ambiguous by whole periods; the one that puts the camera's stretch offsets closest to the
+    pivot's own line (median) is kept. Every camera's stretch offsets are then moved onto the
+    pivot's clock and one robust weighted fit (:func:`_shared_drift_fit`) gives one drift from
+    all of them (N cameras' worth of data) and an offset per camera (a slave exposes a fixed
+    trigger delay after the master, and a wrong counter shift is a whole period: both are
+    constant per camera), then composed back per camera.
+    A camera whose frames do not pair (free-running, counters restarted, too little data)
+    keeps its own line, and a note says so.
+
+    Args:
+        frames: Per camera the frames' ``(device times ns, frame counters)``.
+        fits: Per camera ``(t_dev, offset, σ)`` of its stretches (ns).
+        own: Per camera the line through its own stretches alone.
+
+    Returns:
+        ``(mapping per camera, notes)``.
+    """
+    names = list(own)
+    out = dict(own)
+    if len(names) < 2:
+        return out, []
+    pivot = min(
+        names,
+        key=lambda n: own[n].drift_sigma_ppm if math.isfinite(own[n].drift_sigma_ppm) else 1e9,
+    )
+    t_p, n_p = frames[pivot]
+    line_p = own[pivot]
+    rel: dict[str, _Tie] = {pivot: _Tie(0.0, 0.0, 0.0, len(t_p), 0.0, 0)}
+    notes: list[str] = []
+    for n in names:
+        if n == pivot:
+            continue
+        t_c, n_c = frames[n]
+        # First guess of the counter shift: nearest pivot frame through the own lines.
+        r_c = own[n].to_reference_ns(t_c)
+        r_p = line_p.to_reference_ns(t_p)
+        order = np.argsort(r_p)
+        k = np.clip(np.searchsorted(r_p[order], r_c), 0, len(r_p) - 1)
+        shifts, counts = np.unique(n_c - n_p[order][k], return_counts=True)
+        guess = int(shifts[np.argmax(counts)]) if len(shifts) else 0
+        best: tuple[float, _Tie] | None = None
+        for shift in range(guess - 2, guess + 3):
+            tie = _tie_by_counters(t_c, n_c, t_p, n_p, shift)
+            if tie is None:
+                continue
+            t_w, d_w, _ = fits[n]
+            tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
+            on_pivot = (t_w + d_w - tp_w) - (line_p.to_reference_ns(tp_w.round()) - tp_w.round())
+            score = float(np.median(np.abs(on_pivot)))
+            if best is None or score < best[0]:
+                best = (score, tie)
+        if best is None:
+            notes.append(
+                f"{n}: clock fitted on its own: its frames do not pair with {pivot}'s (no frame "
+                f"counter shift gives a line within {_SYNC_RMS_NS / 1e3:.0f} µs RMS over ≥ 5 s); "
+                "is it hardware-synchronised?"
+            )
+            _log.warning("%s", notes[-1])
+            continue
+        tie = best[1]
+        _log.info(
+            "%s: synchronised with %s (counter shift %d, %d frame pairs, %.1f µs RMS, relative "
+            "rate %+.3f ppm)",
+            n, pivot, tie.counter_shift, tie.pairs, tie.rms_ns / 1e3, tie.s * 1e6,
+        )  # fmt: skip
+        rel[n] = tie
+    if len(rel) < 2:
+        return out, notes
+    t_all, d_all, s_all, cam_all = [], [], [], []
+    for c, (n, tie) in enumerate(rel.items()):
+        t_w, d_w, s_w = fits[n]
+        tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
+        t_all.append(tp_w)
+        d_all.append(t_w + d_w - tp_w)
+        s_all.append(s_w)
+        cam_all.append(np.full(len(t_w), c))
+    offsets, drift_ppm, anchor_p, off_sig, drift_sig = _shared_drift_fit(
+        pivot,
+        np.concatenate(t_all),
+        np.concatenate(d_all),
+        np.concatenate(s_all),
+        np.concatenate(cam_all),
+        len(rel),
+    )
+    method = f"reprojection, drift pooled over {len(rel)} synchronised cameras"
+    dp = drift_ppm * 1e-6
+    for c, (n, tie) in enumerate(rel.items()):
+        a, s, centre = tie.a_ns, tie.s, tie.centre_ns
+        # Camera time t_c → pivot time t_p = t_c + a + s·(t_c − centre) → Vicon by the shared
+        # drift and the camera's own offset; anchored where t_p is the pooled anchor.
+        anchor = round((anchor_p - a + s * centre) / (1.0 + s))
+        t_pa = anchor + a + s * (anchor - centre)
+        offset = t_pa - anchor + offsets[c] + dp * (t_pa - anchor_p)
+        out[n] = ClockMapping(
+            device=n,
+            reference="vicon",
+            offset_ns=round(offset),
+            drift_ppm=(s + dp * (1.0 + s)) * 1e6,
+            anchor_ns=anchor,
+            offset_sigma_ns=off_sig[c],
+            drift_sigma_ppm=drift_sig,
+            method=method,
+        )
+    notes.append(
+        f"clock: one drift fitted through the stretch offsets of {len(rel)} hardware-"
+        f"synchronised cameras (pivot {pivot}; an offset per camera), each camera's clock tied "
+        "to the pivot's by its frame times"
+    )
+    return out, notes
+
+
+def _shared_drift_fit(
+    pivot: str, t_ns: F64, delta_ns: F64, sigma_ns: F64, cam: npt.NDArray[np.int_], n_cams: int
+) -> tuple[list[float], float, int, list[float], float]:
+    """Weighted fit of ``delta = offset[cam] + drift·(t − anchor)`` (ns; t on the pivot's
+    clock) with the stretch weighting and robust rejection of :func:`_line_clock`.
+
+    Returns ``(offsets ns per camera, drift ppm, anchor ns, offset σ ns per camera, drift σ
+    ppm)``; a camera left with no stretch gets a NaN offset σ and the median offset of its
+    stretches.
+    """
+    ok = np.isfinite(sigma_ns) & np.isfinite(delta_ns) & np.isfinite(t_ns)
+    t_ns, delta_ns, sigma_ns, cam = t_ns[ok], delta_ns[ok], sigma_ns[ok], cam[ok]
+    w = 1.0 / (sigma_ns**2 + _STRETCH_SIGMA_FLOOR_NS**2)
+    anchor = round(float((w * t_ns).sum() / w.sum()))
+    A = np.zeros((len(t_ns), n_cams + 1))
+    A[np.arange(len(t_ns)), cam] = 1.0
+    A[:, n_cams] = (t_ns - anchor) * 1e-9
+    keep = np.ones(len(t_ns), dtype=bool)
+    z = np.zeros(len(t_ns))
+    for _ in range(len(t_ns)):
+        wk = w * keep
+        M = A.T @ (A * wk[:, None]) + np.eye(n_cams + 1) * 1e-30
+        cov = np.linalg.pinv(M)
+        coef = cov @ (A.T @ (wk * delta_ns))
+        z = (delta_ns - A @ coef) * np.sqrt(w)
+        scale = max(1.4826 * float(np.median(np.abs(z[keep]))), 1.0)
+        worse = keep & (np.abs(z) > _STRETCH_REJECT_SIGMA * scale)
+        # Keep at least 3 stretches per camera that still has them.
+        per_cam = np.bincount(cam[keep], minlength=n_cams)
+        worse &= per_cam[cam] > 3
+        if not worse.any():
+            break
+        keep[np.argmax(np.where(worse, np.abs(z), -np.inf))] = False
+    n_rej = int((~keep).sum())
+    if n_rej:
+        _log.info("%s clock (pooled): %d of %d stretches rejected", pivot, n_rej, len(keep))
+    chi2 = float((z[keep] ** 2).sum()) / max(int(keep.sum()) - n_cams - 1, 1)
+    cov = cov * max(chi2, 1.0)
+    offsets, off_sig = [], []
+    for c in range(n_cams):
+        if (keep & (cam == c)).any():
+            offsets.append(float(coef[c]))
+            off_sig.append(math.sqrt(cov[c, c]))
+        else:
+            offsets.append(float(np.median(delta_ns[cam == c])) if (cam == c).any() else 0.0)
+            off_sig.append(math.nan)
+    return offsets, float(coef[n_cams]) * 1e-3, anchor, off_sig, math.sqrt(cov[-1, -1]) * 1e-3
+
+
 def _time_align_clock(
     device: str,
     frames: Sequence[MarkerFrame],
@@ -1069,37 +1321,58 @@ def _time_align_clock(
     return mapping
 
 
+#: Floor added (in quadrature) to each stretch's offset σ in the clock line. A stretch's own σ
+#: (from its reprojection fit) is 70–900 µs, but stretches of the same camera scatter by
+#: 0.3–1 ms about the line (blob bias that depends on the motion), and a σ near zero from a
+#: degenerate stretch would otherwise take all the weight.
+_STRETCH_SIGMA_FLOOR_NS: Final = 250_000.0
+#: Stretches farther than this many robust σ from the line are rejected, then it is refitted.
+_STRETCH_REJECT_SIGMA: Final = 3.0
+
+
 def _line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMapping:
-    """A device → Vicon mapping through per-window offsets: a weighted line (offset + drift)
-    when the windows span ≥ 5 s, else the weighted mean offset with no drift."""
-    w = 1.0 / np.maximum(sigma_ns, 1.0) ** 2
+    """A device → Vicon mapping through per-stretch offsets (ns, at device times ns): a
+    weighted line (offset + drift) when the stretches span ≥ 5 s, else the weighted mean
+    offset with no drift.
+
+    Each stretch is weighted by ``1/(σ² + floor²)`` (:data:`_STRETCH_SIGMA_FLOOR_NS`); stretches
+    beyond :data:`_STRETCH_REJECT_SIGMA` robust σ (MAD of the weighted residuals) are rejected
+    and the line refitted, until none is (at least 3 kept). The reported σ are scaled by the
+    residual χ² when it exceeds 1."""
+    ok = np.isfinite(sigma_ns) & np.isfinite(delta_ns) & np.isfinite(t_dev)
+    t_dev, delta_ns, sigma_ns = t_dev[ok], delta_ns[ok], sigma_ns[ok]
+    if len(t_dev) == 0:
+        msg = f"{device}: no stretch gave a finite clock offset"
+        raise CalibrationError(msg)
+    w = 1.0 / (sigma_ns**2 + _STRETCH_SIGMA_FLOOR_NS**2)
+    keep = np.ones(len(t_dev), dtype=bool)
     anchor = round(float((w * t_dev).sum() / w.sum()))
     x = (t_dev - anchor) * 1e-9
-    if len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9:
-        A = np.stack([np.ones_like(x), x], axis=1)
-        cov = np.linalg.inv(A.T @ (A * w[:, None]))
-        coef = cov @ (A.T @ (w * delta_ns))
-        res = delta_ns - A @ coef
-        chi2 = float((w * res**2).sum()) / max(len(x) - 2, 1)
-        cov = cov * max(chi2, 1.0)
-        return ClockMapping(
-            device=device,
-            reference="vicon",
-            offset_ns=round(float(coef[0])),
-            drift_ppm=float(coef[1]) * 1e-3,
-            anchor_ns=anchor,
-            offset_sigma_ns=math.sqrt(cov[0, 0]),
-            drift_sigma_ppm=math.sqrt(cov[1, 1]) * 1e-3,
-            method="reprojection",
-        )
-    mean = float((w * delta_ns).sum() / w.sum())
+    line = len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9
+    A = np.stack([np.ones_like(x), x], axis=1) if line else np.ones((len(x), 1))
+    for _ in range(len(t_dev)):
+        wk = w * keep
+        cov = np.linalg.inv(A.T @ (A * wk[:, None]))
+        coef = cov @ (A.T @ (wk * delta_ns))
+        z = (delta_ns - A @ coef) * np.sqrt(w)
+        scale = max(1.4826 * float(np.median(np.abs(z[keep]))), 1.0)
+        worse = keep & (np.abs(z) > _STRETCH_REJECT_SIGMA * scale)
+        if not worse.any() or keep.sum() - 1 < max(3, A.shape[1] + 1):
+            break
+        keep[np.argmax(np.where(worse, np.abs(z), -np.inf))] = False
+    n_rej = int((~keep).sum())
+    if n_rej:
+        _log.info("%s: clock line: %d of %d stretches rejected", device, n_rej, len(keep))
+    chi2 = float((z[keep] ** 2).sum()) / max(int(keep.sum()) - A.shape[1], 1)
+    cov = cov * max(chi2, 1.0)
     return ClockMapping(
         device=device,
         reference="vicon",
-        offset_ns=round(mean),
-        drift_ppm=0.0,
+        offset_ns=round(float(coef[0])),
+        drift_ppm=float(coef[1]) * 1e-3 if line else 0.0,
         anchor_ns=anchor,
-        offset_sigma_ns=math.sqrt(1.0 / w.sum()),
+        offset_sigma_ns=math.sqrt(cov[0, 0]),
+        drift_sigma_ppm=math.sqrt(cov[1, 1]) * 1e-3 if line else math.nan,
         method="reprojection",
     )
 

@@ -162,8 +162,10 @@ examples:
   mocaprig demo --scenario karate --seed 3 --seconds 6 --out karate-demo --json
       the same on fast strikes; one JSON object with every figure
 
-The demo runs the whole toolkit as far as it exists; report.json lists the stages that later
-versions add (calibration, DeMoCap, EventCap) as pending.
+The demo runs the whole toolkit as far as it exists: simulate, record, check the recording,
+Vicon I/O, calibration, DeMoCap on held-out takes and the DeMoCap replay of the recording
+(demo-out/results.mcap, .c3d, .csv; every 3rd rig instant); report.json lists the stages that
+later versions add (EventCap) as pending.
 """
 
 
@@ -220,6 +222,7 @@ def _demo(args: argparse.Namespace) -> int:
     r = f["recording"]
     c = f.get("calibration", {})
     d = f.get("democap", {})
+    rp = f.get("democap_replay", {})
     lines = [
         f"mocaprig demo: scenario {f['scenario']!r}, seed {f['seed']}, {f['seconds']:g} s",
         "stages:",
@@ -266,9 +269,18 @@ def _demo(args: argparse.Namespace) -> int:
             if "error" not in d and d
             else f"  DeMoCap: {d.get('error', 'not run')}"
         ),
+        (
+            f"  DeMoCap replay of session.mcap ({rp['cameras']} D415s, 1 instant in "
+            f"{rp['every']}): {rp['instants']} instants, MPJPE {rp['mpjpe_mm']:.1f} mm, MPMPE "
+            f"{rp['mpmpe_mm']:.1f} mm vs truth, {rp['mean_points_per_instant']:.0f} points per "
+            f"cloud, {rp['seconds']:.1f} s"
+            if "error" not in rp and rp
+            else f"  DeMoCap replay: {rp.get('error', 'not run')}"
+        ),
         "outputs:",
         f"  session (truth + Vicon C3D/CSV + session.mcap): {report.session_dir}",
         f"  calibration: {c.get('calibration_file', '-')}",
+        f"  DeMoCap replay: {rp.get('results_mcap', '-')} (+ .c3d, .csv)",
         f"  summary figure: {report.figure_path}",
         f"  report:         {report.report_path}",
     ]

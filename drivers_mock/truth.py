@@ -43,6 +43,7 @@ __all__ = [
     "TRUTH_FORMAT_VERSION",
     "Truth",
     "ViconTruth",
+    "democap_truth_at",
     "read_truth",
     "scenario_description",
     "write_truth",
@@ -377,3 +378,48 @@ def read_truth(path: str | Path) -> Truth:
     except KeyError as err:
         msg = f"ground truth {npz_path} lacks the array {err}; regenerate it"
         raise RecordingError(msg) from err
+
+
+def democap_truth_at(
+    truth: Truth, t_ns: npt.ArrayLike, *, clock: str | None = "vicon"
+) -> tuple[F64, F64]:
+    """The true DeMoCap markers and joints at given instants, for scoring a replay.
+
+    Args:
+        truth: The session's truth.
+        t_ns: Times (int ns) on ``clock``'s time base (a calibration's reference clock:
+            ``"vicon"``), or session times when ``clock`` is None.
+        clock: The device clock ``t_ns`` is on; mapped to session time with its affine part
+            (``DeviceClock.session_ns``, no jitter).
+
+    Returns:
+        ``(markers_m (N, 53, 3), joints_m (N, 19, 3))``, world, metres, in
+        ``process.body.MARKER_NAMES`` / ``DEMOCAP_JOINTS`` order, linearly interpolated on the
+        truth grid (1 kHz by default; times outside it take the end values).
+
+    Raises:
+        ValidationError: an unknown clock, or a marker of the DeMoCap set missing in the truth.
+    """
+    from process.body import DEMOCAP_JOINT_INDEX, MARKER_NAMES
+
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+    if clock is not None:
+        clocks = truth.clocks
+        if clock not in clocks:
+            msg = f"no clock {clock!r} in the truth; it has {sorted(clocks)}"
+            raise ValidationError(msg)
+        t = clocks[clock].session_ns(t, unit_ns=1)
+    missing = [m for m in MARKER_NAMES if m not in truth.marker_names]
+    if missing:
+        msg = f"the truth lacks the DeMoCap markers {missing}"
+        raise ValidationError(msg)
+    m_idx = [truth.marker_names.index(m) for m in MARKER_NAMES]
+    grid = truth.t_ns.astype(np.float64)
+    tq = t.astype(np.float64)
+
+    def interp(a: F64) -> F64:
+        flat = a.reshape(a.shape[0], -1)
+        out = np.stack([np.interp(tq, grid, flat[:, k]) for k in range(flat.shape[1])], axis=1)
+        return out.reshape(t.size, *a.shape[1:])
+
+    return interp(truth.markers_m[:, m_idx]), interp(truth.joints_m[:, list(DEMOCAP_JOINT_INDEX)])

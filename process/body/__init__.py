@@ -64,6 +64,7 @@ from process.body.shape import (
 from process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
     DEMOCAP_JOINTS,
+    DEMOCAP_PARENTS,
     DOF_JOINT,
     DOF_LIMITS_DEG,
     DOF_LIMITS_RAD,
@@ -94,6 +95,7 @@ __all__ = [
     "COMMON_MARKERS",
     "DEMOCAP_JOINTS",
     "DEMOCAP_JOINT_INDEX",
+    "DEMOCAP_PARENTS",
     "DOF_JOINT",
     "DOF_LIMITS_DEG",
     "DOF_LIMITS_RAD",

@@ -23,6 +23,7 @@ import numpy.typing as npt
 __all__ = [
     "DEMOCAP_JOINTS",
     "DEMOCAP_JOINT_INDEX",
+    "DEMOCAP_PARENTS",
     "DOF_JOINT",
     "DOF_LIMITS_DEG",
     "DOF_LIMITS_RAD",
@@ -132,6 +133,23 @@ DEMOCAP_JOINTS: tuple[str, ...] = (
 DEMOCAP_JOINT_INDEX: tuple[int, ...] = tuple(
     JOINT_INDEX["HeadEnd" if name == "Head" else name] for name in DEMOCAP_JOINTS
 )
+
+
+def _democap_parents() -> tuple[int, ...]:
+    pos = {j: k for k, j in enumerate(DEMOCAP_JOINT_INDEX)}
+    out = []
+    for j in DEMOCAP_JOINT_INDEX:
+        p = PARENTS[j]
+        while p >= 0 and p not in pos:  # skip joints the 19-joint skeleton leaves out
+            p = PARENTS[p]
+        out.append(pos.get(p, -1))
+    return tuple(out)
+
+
+#: Parent of each DeMoCap joint as an index into :data:`DEMOCAP_JOINTS` (-1 for Hips): our
+#: skeleton's parent, skipping the joints DeMoCap leaves out (the clavicles, the head centre),
+#: so the arms hang from Spine2 and the head top from the neck.
+DEMOCAP_PARENTS: tuple[int, ...] = _democap_parents()
 
 if len(DOF_NAMES) != NUM_DOF or len(PARENTS) != len(JOINTS):  # pragma: no cover - table typo
     msg = "skeleton tables are inconsistent"

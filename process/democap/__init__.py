@@ -3,7 +3,8 @@
 Pipeline: normalisation into the [0.1, 0.9] cuboid (:mod:`.geometry`), front/back orthographic
 renders, the staged markers-to-pose network and CoM3D decoding (:mod:`.model`), dual-view
 fusion, inverse normalisation (:mod:`.infer`). Training data is simulated at the marker level
-(:mod:`.simdata`, :mod:`.dataset`); :mod:`.train` trains, :mod:`.evaluate` measures.
+(:mod:`.simdata`, :mod:`.dataset`); :mod:`.train` trains, :mod:`.evaluate` measures, and
+:mod:`.replay` runs the network on a calibrated recording.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from process.democap.config import CONFIGS, DemocapConfig, config_by_name
 from process.democap.evaluate import EvalReport, evaluate
 from process.democap.infer import DemocapPredictor, Prediction
 from process.democap.model import DemocapNet
+from process.democap.replay import ReplayResult, run_replay, score_replay
 from process.democap.train import TrainOptions, train
 
 __all__ = [
@@ -31,12 +33,15 @@ __all__ = [
     "DemocapPredictor",
     "EvalReport",
     "Prediction",
+    "ReplayResult",
     "TrainOptions",
     "config_by_name",
     "demo_figures",
     "evaluate",
     "load_checkpoint",
+    "run_replay",
     "save_checkpoint",
+    "score_replay",
     "train",
 ]
 

@@ -14,7 +14,7 @@ from typing import Any
 
 from acquire.cli import ProgressBar, add_json_flag, emit_json
 
-__all__ = ["democap_eval", "democap_train", "register_democap"]
+__all__ = ["democap_eval", "democap_run", "democap_train", "register_democap"]
 
 _EPILOG = """\
 examples:
@@ -23,8 +23,9 @@ examples:
   mocaprig democap eval --json                                  committed lite checkpoint
   mocaprig democap eval --cameras 2 --seed 3
   mocaprig democap eval --motion walk.bvh --json                a motion never trained on
+  mocaprig democap run session.mcap --calib calib.toml --out results.mcap   replay a recording
 
-Not implemented yet: `democap run SESSION.mcap` (replay on recordings) and the baselines.
+Not implemented yet: the baselines (pose, markers+pose, direct regression).
 """
 
 _TRAIN_EPILOG = """\
@@ -47,6 +48,25 @@ examples:
   mocaprig democap eval --ckpt lite.pt --cameras 4 --json
   mocaprig democap eval --all-cameras --json        4-, 3- and 2-camera figures
   mocaprig democap eval --motion ../shared/data/motion/cmu_131_02_scaled.bvh
+"""
+
+_RUN_EPILOG = """\
+Every D415 frame's device time is mapped onto the calibration's reference clock (Vicon) with
+that camera's clock mapping; frames within a quarter frame period form one rig instant (an
+instant seen by fewer cameras is still processed). Per instant: IR blobs + depth -> camera
+points -> world (calibration poses) -> capture-box crop -> 10 mm merge -> the network.
+
+Outputs (none is replaced without --overwrite):
+  results.mcap  Foxglove SceneUpdate on /democap/markers, /democap/joints (bones + names) and
+                /democap/cloud (the fused input), log_time = reference time (ns)
+  results.c3d   53 markers then the 19 joints as J_<joint>, mm (--c3d; default: beside --out)
+  results.csv   time_s (reference clock), then <name>_x,<name>_y,<name>_z in mm (--csv)
+
+examples:
+  mocaprig democap run sim/session.mcap --calib calib.toml --out results.mcap
+  mocaprig democap run sim/session.mcap --calib calib.toml --out r.mcap --every 3 --json
+  mocaprig democap run s.mcap --calib calib.toml --out r.mcap --c3d r_pose.c3d --csv r.csv
+  mocaprig democap run s.mcap --calib calib.toml --out r.mcap --ckpt lite.pt --overwrite
 """
 
 
@@ -99,6 +119,30 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     ev.add_argument("--frames", type=int, default=40, help="frames per take")
     add_json_flag(ev)
     ev.set_defaults(func=democap_eval)
+
+    rn = sub.add_parser(
+        "run",
+        help="replay a recording: D415 markers -> labelled markers + joints (MCAP, C3D, CSV)",
+        description="Replay the D415 streams of a recording through DeMoCap.",
+        epilog=_RUN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    rn.add_argument("session", metavar="SESSION.mcap", type=Path, help="the recording")
+    rn.add_argument(
+        "--calib", type=Path, required=True, metavar="CALIB", help="calibration (.toml or .json)"
+    )
+    rn.add_argument("--out", type=Path, required=True, metavar="OUT.mcap", help="results MCAP")
+    rn.add_argument("--c3d", type=Path, default=None, metavar="OUT.c3d", help="C3D output")
+    rn.add_argument("--csv", type=Path, default=None, metavar="OUT.csv", help="CSV output")
+    rn.add_argument("--ckpt", default=None, help="checkpoint (default: the committed lite one)")
+    rn.add_argument("--every", type=int, default=1, metavar="N", help="every N-th instant")
+    rn.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    rn.add_argument("--no-crop", action="store_true", help="keep points outside the capture box")
+    rn.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
+    )
+    add_json_flag(rn)
+    rn.set_defaults(func=democap_run)
 
 
 def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
@@ -186,4 +230,44 @@ def democap_eval(args: argparse.Namespace) -> int:
         )
         acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
         print(f"  per action (mm): {acts}")
+    return 0
+
+
+def democap_run(args: argparse.Namespace) -> int:
+    """Handler of ``mocaprig democap run``; returns 0."""
+    import torch
+
+    from process.democap.infer import DemocapPredictor
+    from process.democap.replay import DEFAULT_CROP_BOX_M, run_replay
+
+    if args.threads < 1:
+        from acquire.errors import ValidationError
+
+        msg = f"--threads must be >= 1, got {args.threads}"
+        raise ValidationError(msg)
+    torch.set_num_threads(args.threads)
+    result = run_replay(
+        args.session,
+        args.calib,
+        out=args.out,
+        c3d=args.c3d,
+        csv=args.csv,
+        predictor=DemocapPredictor(None if args.ckpt is None else Path(args.ckpt)),
+        every=args.every,
+        overwrite=args.overwrite,
+        crop_box_m=None if args.no_crop else DEFAULT_CROP_BOX_M,
+        progress=ProgressBar("democap run"),
+    )
+    summary = result.summary()
+    if args.json:
+        emit_json(summary)
+        return 0
+    hist = ", ".join(f"{v} with {k}" for k, v in sorted(result.camera_histogram.items()))
+    print(
+        f"{args.session}: {result.instants} instants ({hist} cameras; "
+        f"{result.skipped_instants} skipped), {result.mean_points:.1f} points per cloud, "
+        f"{summary['seconds']:.1f} s ({result.checkpoint})"
+    )
+    for kind, path in result.outputs.items():
+        print(f"  {kind:<4} -> {path}")
     return 0

@@ -15,9 +15,10 @@ from typing import Any, Literal
 
 from acquire.errors import ValidationError
 
-__all__ = ["CONFIGS", "ConfigName", "DemocapConfig", "config_by_name"]
+__all__ = ["CONFIGS", "ConfigName", "DemocapConfig", "HeadActivation", "config_by_name"]
 
 ConfigName = Literal["lite", "paper"]
+HeadActivation = Literal["relu", "softplus"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,6 +43,11 @@ class DemocapConfig:
         samples_per_epoch: training samples per epoch.
         wing_w, wing_eps: Wing loss parameters (paper: 10, 2).
         coord_weight, heatmap_weight: λ1, λ2 of paper Eq. 10 (2, 1).
+        head: activation of the heat-map head. ``"relu"`` is the paper's; a ReLU channel can
+            die early in training (its softmax goes flat and the joint lands at the cloud
+            centre), so ``lite`` uses ``"softplus"``, which keeps zMean positive and keeps a
+            gradient where a ReLU has none.
+            Checkpoints without the key are ReLU.
     """
 
     name: str
@@ -63,6 +69,7 @@ class DemocapConfig:
     wing_eps: float = 2.0
     coord_weight: float = 2.0
     heatmap_weight: float = 1.0
+    head: HeadActivation = "relu"
 
     def __post_init__(self) -> None:
         n = len(self.stage_branches)
@@ -81,6 +88,9 @@ class DemocapConfig:
                 )
                 raise ValidationError(msg)
             prev = b
+        if self.head not in ("relu", "softplus"):
+            msg = f"config {self.name!r}: head must be 'relu' or 'softplus', got {self.head!r}"
+            raise ValidationError(msg)
         if self.input_px % 4 or self.input_px < 32:
             msg = f"config {self.name!r}: input_px must be a multiple of 4, >= 32"
             raise ValidationError(msg)
@@ -116,7 +126,7 @@ class DemocapConfig:
 
 
 CONFIGS: dict[str, DemocapConfig] = {
-    "lite": DemocapConfig(name="lite"),
+    "lite": DemocapConfig(name="lite", head="softplus"),
     "paper": DemocapConfig(
         name="paper",
         stem_channels=64,

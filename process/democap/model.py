@@ -9,9 +9,9 @@ Architecture (democap-method.md §2.1–2.2, paper §4.1 and Eq. 3), as the pape
   branch, then every branch fused into every other: 1×1 conv + bilinear up-sampling from
   lower resolutions, strided 3×3 convs from higher ones). Fusion reads a frozen copy of the
   branches (original HRNet), not the in-place updated list of the authors' framework (§2.2).
-* one shared 1×1 conv + ReLU head reads the top branch after the transition and after every
-  stage; the heads are summed into the aggregated heat maps H̄ (Eq. 3, all stages, unlike the
-  implementation's ``2×stage2 + stage3 + stage4``);
+* one shared 1×1 conv + ReLU (or softplus, ``DemocapConfig.head``) head reads the top branch
+  after the transition and after every stage; the heads are summed into the aggregated heat
+  maps H̄ (Eq. 3, all stages, unlike the implementation's ``2×stage2 + stage3 + stage4``);
 * super-stage 1 predicts the 53 marker maps; its output F ⊕ H̄_M feeds super-stage 2, which
   predicts the 19 joint maps.
 
@@ -152,7 +152,8 @@ class _SuperStage(nn.Module):
         self.grow = nn.ModuleList(grow)
         self.stages = nn.ModuleList(stages)
         self.branch_counts = tuple(cfg.stage_branches)
-        self.head = nn.Sequential(nn.Conv2d(w, k, 1), nn.ReLU(inplace=False))
+        act: nn.Module = nn.Softplus() if cfg.head == "softplus" else nn.ReLU(inplace=False)
+        self.head = nn.Sequential(nn.Conv2d(w, k, 1), act)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xs = [m(x) for m in self.start]

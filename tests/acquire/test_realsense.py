@@ -27,7 +27,11 @@ from acquire.depth_camera import (
 )
 from acquire.errors import DeviceError, ValidationError
 
-rs = pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not importable on this system")
+rs = pytest.importorskip(
+    "pyrealsense2",
+    reason="pyrealsense2 is not importable here (not installed, or libusb-1.0 missing)",
+    exc_type=ImportError,
+)
 
 from acquire.realsense import RealSenseCamera, enumerate_cameras  # noqa: E402
 

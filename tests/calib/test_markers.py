@@ -17,6 +17,7 @@ from calib.markers import (
     MarkerFrame,
     crop_volume,
     detect_blobs,
+    frame_times,
     measure_frame,
     measure_recording,
     merge_views,
@@ -277,3 +278,27 @@ def test_measure_recording_reads_d415_streams_with_windows_and_decimation(tmp_pa
             measure_recording(rec, cameras=["999"])
         with pytest.raises(ValidationError, match="every"):
             measure_recording(rec, every=0)
+
+
+def test_frame_times_lists_frames_and_measure_recording_takes_them_by_time(
+    tmp_path: Path,
+) -> None:
+    sc = build_scenario("default", seed=2, seconds=4)
+    renderer = SceneRenderer(sc, sc.rig.d415[0])
+    rng = np.random.default_rng(3)
+    rendered = [
+        renderer.render(2_000_000_000 + i * 33_333_333, IrSettings(), rng) for i in range(3)
+    ]
+    path = tmp_path / "s.mcap"
+    _write_recording(path, rendered, renderer.K)
+    with Recording(path) as rec:
+        times = frame_times(rec)
+        assert list(times) == ["d415/123456789012"]
+        t = times["d415/123456789012"]
+        assert t.dtype == np.int64
+        assert np.all(np.diff(t) == 33_333_000)  # the u32 µs wrap is undone, as when measured
+        sub = measure_recording(rec, frames_t_dev_ns={"123456789012": [int(t[0]), int(t[2])]})
+        assert [f.t_dev_ns for f in sub["d415/123456789012"]] == [t[0], t[2]]
+        assert [f.frame_counter for f in sub["d415/123456789012"]] == [50, 52]
+        with pytest.raises(CalibrationError, match="no D415 stream"):
+            frame_times(rec, cameras=["999"])

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import cast
+from typing import Literal, cast
 
 import pytest
 import torch
@@ -111,3 +112,44 @@ def test_config_round_trip_and_errors() -> None:
         DemocapConfig.from_dict({**cfg.to_dict(), "depth": 3})
     with pytest.raises(ValidationError, match="one branch"):
         DemocapConfig(name="bad", stage_branches=(4,), stage_modules=(1,), stage_units=(1,))
+
+
+def test_config_without_head_key_is_the_papers_relu_head() -> None:
+    # Checkpoints written before the option existed carry no "head" key.
+    d = config_by_name("lite").to_dict()
+    del d["head"]
+    assert DemocapConfig.from_dict(d).head == "relu"
+    with pytest.raises(ValidationError, match="head must be"):
+        DemocapConfig(name="bad", head=cast(Literal["relu", "softplus"], "tanh"))
+
+
+def _head_bias(net: DemocapNet) -> torch.Tensor:
+    bias = cast(torch.nn.Conv2d, net.joints.head[0]).bias
+    assert bias is not None
+    return bias
+
+
+def test_softplus_head_keeps_a_gradient_where_relu_is_dead(tiny_config: DemocapConfig) -> None:
+    torch.manual_seed(0)
+    cfg_relu = dataclasses.replace(tiny_config, head="relu")
+    cfg_soft = dataclasses.replace(tiny_config, head="softplus")
+    x = torch.rand(2, 1, tiny_config.input_px, tiny_config.input_px)
+    nets = {}
+    for cfg in (cfg_relu, cfg_soft):
+        net = DemocapNet(cfg).eval()
+        # A head bias well below zero is what a dead ReLU channel looks like.
+        with torch.no_grad():
+            _head_bias(net).fill_(-8.0)
+        nets[cfg.head] = net
+    with torch.no_grad():
+        dead = nets["relu"](x).joints
+        alive = nets["softplus"](x).joints
+    assert float(dead.abs().max()) == 0.0
+    assert float(alive.min()) > 0.0
+    # Softplus keeps a gradient: a step on a loss of the maps changes the bias.
+    net = nets["softplus"].train()
+    out = net(x).joints
+    out.sum().backward()
+    grad = _head_bias(net).grad
+    assert grad is not None
+    assert float(grad.abs().sum()) > 0.0

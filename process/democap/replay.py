@@ -1,0 +1,838 @@
+"""DeMoCap replay on a recording: D415 markers -> rig instants -> labelled markers + joints.
+
+:func:`run_replay` takes a recording (``mocaprig record`` / ``simulate``) and its calibration
+(``mocaprig calibrate vicon``) and:
+
+1. lists every D415 frame's device time (:func:`calib.markers.frame_times`, no image decoded)
+   and maps it onto the calibration's reference clock with that camera's
+   :class:`~calib.calibration.ClockMapping`;
+2. groups the frames into **rig instants** (:func:`group_instants`): the D415s are hardware
+   synchronised (the slaves expose on the master's pulses), so the frames of one instant agree
+   on the reference clock to the calibration's accuracy (≈ 1 ms); frames closer than
+   ``tolerance`` × the median frame period (¼ by default) to the instant's first frame join it,
+   one per camera. An instant seen by fewer cameras (a dropped frame) is still processed;
+3. keeps every ``every``-th instant and measures only its frames
+   (:func:`calib.markers.measure_recording`: IR blobs, depth, deprojection);
+4. per instant: camera -> world (:func:`calib.markers.to_world`), the capture-box crop of the
+   training data (:data:`DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
+   (:func:`calib.markers.merge_views`);
+5. runs the clouds through :class:`~process.democap.infer.DemocapPredictor` in batches
+   (instants whose cloud has fewer than 2 points are skipped and counted);
+6. writes the results (:func:`write_scene_mcap`, :func:`write_replay_c3d`,
+   :func:`write_replay_csv`).
+
+Outputs (docs/democap.md "Replay"):
+
+* **MCAP** (Foxglove): channels :data:`MARKERS_TOPIC`, :data:`JOINTS_TOPIC` and
+  :data:`CLOUD_TOPIC`, schema ``foxglove.SceneUpdate`` (protobuf), one message per instant,
+  ``log_time`` = ``publish_time`` = the instant's reference time (ns), frame = the calibration's
+  world frame. Markers: 53 spheres (14 mm); joints: 19 spheres (30 mm), the bones of
+  :data:`process.body.DEMOCAP_PARENTS` as one line list and a text label per joint; cloud: the
+  fused input points (10 mm). Each entity's metadata holds ``names`` (comma-separated, in
+  sphere order), ``cameras`` and ``points``. The file carries a ``democap_replay`` metadata
+  record (inputs, checkpoint, counts) and the calibration as the ``calibration.toml`` attachment.
+* **C3D** (:func:`calib.vicon.write_c3d`, mm): the 53 markers then the 19 joints as ``J_<joint>``;
+  POINT:RATE = the frame rate / ``every``; row *i* is the instant nearest to the first instant's
+  reference time + *i* periods; rows without an instant are gaps; first frame 1 (the exact
+  reference times are in the CSV and the MCAP).
+* **CSV**: a header line, then one line per instant: ``time_s`` (reference clock, s, 9
+  decimals, exact from the ns), then ``<name>_x,<name>_y,<name>_z`` (mm, 3 decimals, world frame)
+  for the 53 markers and the 19 ``J_<joint>`` joints.
+
+Units: metres and ns inside; mm in the C3D and CSV.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Final, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from acquire.errors import CalibrationError, ProcessingError, ValidationError
+from calib.calibration import Calibration, read_calibration
+from process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
+from process.democap.evaluate import EVAL_JOINTS
+from process.democap.infer import DemocapPredictor, Prediction
+from process.democap.simdata import CAPTURE_BOX_M
+from process.metrics import PoseMetrics, pose_metrics
+
+__all__ = [
+    "CLOUD_TOPIC",
+    "DEFAULT_CROP_BOX_M",
+    "INSTANT_TOLERANCE",
+    "JOINTS_TOPIC",
+    "JOINT_LABEL_PREFIX",
+    "MARKERS_TOPIC",
+    "METADATA_NAME",
+    "Grouping",
+    "Instant",
+    "ReplayResult",
+    "default_outputs",
+    "group_instants",
+    "run_replay",
+    "score_replay",
+    "write_replay_c3d",
+    "write_replay_csv",
+    "write_scene_mcap",
+]
+
+_log = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+MARKERS_TOPIC: Final = "/democap/markers"
+JOINTS_TOPIC: Final = "/democap/joints"
+CLOUD_TOPIC: Final = "/democap/cloud"
+#: Name of the MCAP metadata record describing the replay.
+METADATA_NAME: Final = "democap_replay"
+#: Prefix of the joint labels in the C3D and the CSV (``J_Hips``...).
+JOINT_LABEL_PREFIX: Final = "J_"
+#: Frames within this fraction of the median frame period of an instant's first frame join it.
+INSTANT_TOLERANCE: Final = 0.25
+#: The capture box of the training data (world, m): ``((x0, x1), (y0, y1), (z0, z1))``.
+DEFAULT_CROP_BOX_M: Final = CAPTURE_BOX_M
+#: Frame period assumed when no camera has two frames (30 Hz).
+_NOMINAL_PERIOD_NS: Final = 33_333_333
+
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+
+
+# ------------------------------------------------------------------------------ instants
+
+
+@dataclass(frozen=True, slots=True)
+class Instant:
+    """One rig instant: the frames of the cameras that exposed together.
+
+    Attributes:
+        t_ref_ns: Mean reference time of its frames (ns, calibration's reference clock).
+        frames: Camera label -> device time of its frame (ns, the camera's own clock).
+    """
+
+    t_ref_ns: int
+    frames: Mapping[str, int]
+
+
+class Grouping(NamedTuple):
+    """What :func:`group_instants` returns."""
+
+    instants: tuple[Instant, ...]
+    period_ns: int
+    """Median frame period on the reference clock (ns)."""
+
+
+def group_instants(
+    t_dev_ns: Mapping[str, npt.ArrayLike],
+    t_ref_ns: Mapping[str, npt.ArrayLike],
+    *,
+    tolerance: float = INSTANT_TOLERANCE,
+) -> Grouping:
+    """Group the frames of hardware-synchronised cameras into instants.
+
+    Frames are taken in reference-time order; a frame joins the open instant when it lies
+    within ``tolerance`` × the median frame period of that instant's first frame and its camera
+    is not in it yet, otherwise it opens a new instant.
+
+    Args:
+        t_dev_ns: Per camera, the device times of its frames (ns).
+        t_ref_ns: Per camera, the same frames on the reference clock (ns), same shape.
+        tolerance: Fraction of the median frame period (0 < tolerance < 0.5).
+
+    Returns:
+        The instants in time order and the median frame period (ns; 30 Hz when no camera has
+        two frames).
+
+    Raises:
+        ValidationError: mismatched cameras or shapes, or ``tolerance`` out of range.
+    """
+    if not 0.0 < float(tolerance) < 0.5:
+        msg = f"tolerance must lie in (0, 0.5) frame periods, got {tolerance!r}"
+        raise ValidationError(msg)
+    if set(t_dev_ns) != set(t_ref_ns):
+        msg = (
+            "t_dev_ns and t_ref_ns must have the same cameras: "
+            f"{sorted(t_dev_ns)} vs {sorted(t_ref_ns)}"
+        )
+        raise ValidationError(msg)
+    cams = sorted(t_dev_ns)
+    dev = {c: np.asarray(t_dev_ns[c], dtype=np.int64).reshape(-1) for c in cams}
+    ref = {c: np.asarray(t_ref_ns[c], dtype=np.int64).reshape(-1) for c in cams}
+    for c in cams:
+        if dev[c].shape != ref[c].shape:
+            msg = f"{c}: {dev[c].size} device times but {ref[c].size} reference times"
+            raise ValidationError(msg)
+    steps = [np.diff(np.sort(ref[c])) for c in cams if ref[c].size > 1]
+    period = int(np.median(np.concatenate(steps))) if steps else _NOMINAL_PERIOD_NS
+    if period <= 0:
+        msg = f"the frames' reference times do not advance (median period {period} ns)"
+        raise ValidationError(msg)
+    tol = float(tolerance) * period
+    empty = np.zeros(0, np.int64)
+    t_all = np.concatenate([empty, *(ref[c] for c in cams)])
+    cam_all = np.concatenate([empty, *(np.full(ref[c].size, i) for i, c in enumerate(cams))])
+    dev_all = np.concatenate([empty, *(dev[c] for c in cams)])
+    order = np.lexsort((cam_all, t_all))
+    instants: list[Instant] = []
+    first = 0
+    members: dict[str, tuple[int, int]] = {}  # camera -> (t_dev, t_ref)
+
+    def close() -> None:
+        if members:
+            t_mean = round(float(np.mean([r for _, r in members.values()])))
+            instants.append(Instant(t_mean, {c: d for c, (d, _) in sorted(members.items())}))
+
+    for k in order:
+        t, cam, d = int(t_all[k]), cams[int(cam_all[k])], int(dev_all[k])
+        if members and t - first <= tol and cam not in members:
+            members[cam] = (d, t)
+            continue
+        close()
+        members = {cam: (d, t)}
+        first = t
+    close()
+    return Grouping(tuple(instants), period)
+
+
+# ------------------------------------------------------------------------------ result
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ReplayResult:
+    """What :func:`run_replay` produced.
+
+    Attributes:
+        session: The recording.
+        outputs: ``{"mcap": ..., "c3d": ..., "csv": ...}`` paths written.
+        cameras: The D415s of the recording (``d415/<serial>``).
+        frames_per_camera: Frames of each camera in the recording.
+        t_ref_ns: ``(N,)`` reference time of each instant written (ns).
+        cameras_per_instant: ``(N,)`` cameras whose frame fed each instant.
+        points_per_instant: ``(N,)`` points of each fused cloud.
+        markers_m: ``(N, 53, 3)`` labelled markers (world, m), :data:`MARKER_NAMES` order.
+        joints_m: ``(N, 19, 3)`` joints (world, m), :data:`DEMOCAP_JOINTS` order.
+        instants_total: Instants found in the recording (before ``every``).
+        skipped_instants: Selected instants not written (fused cloud under 2 points).
+        every: Every n-th instant was processed.
+        period_ns: Median frame period on the reference clock (ns).
+        reference_clock: The calibration's reference clock (``"vicon"``).
+        world_frame: The calibration's world frame.
+        checkpoint: ``"<config> (<epochs> epochs)"`` of the network used.
+        timings_s: Wall seconds per stage (``measure_s``, ``network_s``, ``write_s``,
+            ``total_s``).
+    """
+
+    session: Path
+    outputs: Mapping[str, Path]
+    cameras: tuple[str, ...]
+    frames_per_camera: Mapping[str, int]
+    t_ref_ns: I64 = field(repr=False)
+    cameras_per_instant: I64 = field(repr=False)
+    points_per_instant: I64 = field(repr=False)
+    markers_m: F64 = field(repr=False)
+    joints_m: F64 = field(repr=False)
+    instants_total: int = 0
+    skipped_instants: int = 0
+    every: int = 1
+    period_ns: int = 0
+    reference_clock: str = "vicon"
+    world_frame: str = "vicon"
+    checkpoint: str = ""
+    timings_s: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def instants(self) -> int:
+        """Instants written."""
+        return int(self.t_ref_ns.size)
+
+    @property
+    def camera_histogram(self) -> dict[int, int]:
+        """Instants written per number of cameras that saw them, ``{cameras: instants}``."""
+        counts = np.bincount(self.cameras_per_instant, minlength=len(self.cameras) + 1)
+        return {k: int(n) for k, n in enumerate(counts) if n and k}
+
+    @property
+    def mean_points(self) -> float:
+        """Mean points per fused cloud (NaN without instants)."""
+        return float(self.points_per_instant.mean()) if self.instants else float("nan")
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready summary (what ``democap run --json`` prints)."""
+        return {
+            "session": str(self.session),
+            "instants": self.instants,
+            "instants_total": self.instants_total,
+            "skipped_instants": self.skipped_instants,
+            "every": self.every,
+            "rate_hz": 1e9 / (self.period_ns * self.every) if self.period_ns else None,
+            "cameras": list(self.cameras),
+            "frames_per_camera": dict(self.frames_per_camera),
+            "instants_by_camera_count": {str(k): v for k, v in self.camera_histogram.items()},
+            "mean_points_per_instant": self.mean_points,
+            "t_first_ns": int(self.t_ref_ns[0]) if self.instants else None,
+            "t_last_ns": int(self.t_ref_ns[-1]) if self.instants else None,
+            "reference_clock": self.reference_clock,
+            "world_frame": self.world_frame,
+            "checkpoint": self.checkpoint,
+            "outputs": {k: str(v) for k, v in self.outputs.items()},
+            "seconds": self.timings_s.get("total_s"),
+            "timings_s": dict(self.timings_s),
+        }
+
+
+def score_replay(
+    result: ReplayResult, true_joints_m: npt.ArrayLike, true_markers_m: npt.ArrayLike | None = None
+) -> PoseMetrics:
+    """Figures of a replay against true joints (and markers) at its instants.
+
+    MPJPE is over the paper's 17 joints (no toes, :data:`~process.democap.evaluate.EVAL_JOINTS`)
+    as in :func:`~process.democap.evaluate.evaluate`, MPMPE over the 53 markers.
+
+    Args:
+        result: The replay.
+        true_joints_m: ``(N, 19, 3)`` true joints at ``result.t_ref_ns`` (world, m).
+        true_markers_m: ``(N, 53, 3)`` true marker centres, or None.
+
+    Raises:
+        ValidationError: shapes that do not match the replay.
+    """
+    tj = np.asarray(true_joints_m, dtype=np.float64)
+    if tj.shape != result.joints_m.shape:
+        msg = f"true_joints_m has shape {tj.shape}, the replay {result.joints_m.shape}"
+        raise ValidationError(msg)
+    tm = None if true_markers_m is None else np.asarray(true_markers_m, dtype=np.float64)
+    if tm is not None and tm.shape != result.markers_m.shape:
+        msg = f"true_markers_m has shape {tm.shape}, the replay {result.markers_m.shape}"
+        raise ValidationError(msg)
+    keep = list(EVAL_JOINTS)
+    return pose_metrics(
+        result.joints_m[:, keep] * 1e3,
+        tj[:, keep] * 1e3,
+        pred_markers_mm=None if tm is None else result.markers_m * 1e3,
+        true_markers_mm=None if tm is None else tm * 1e3,
+    )
+
+
+# ------------------------------------------------------------------------------ the run
+
+
+def default_outputs(out: str | Path) -> tuple[Path, Path]:
+    """The C3D and CSV written beside ``out`` with its stem: ``(<stem>.c3d, <stem>.csv)``."""
+    p = Path(out)
+    return p.with_suffix(".c3d"), p.with_suffix(".csv")
+
+
+def _check_outputs(paths: Mapping[str, Path], overwrite: bool) -> None:
+    suffix = {"mcap": ".mcap", "c3d": ".c3d", "csv": ".csv"}
+    for kind, p in paths.items():
+        if p.suffix.lower() != suffix[kind]:
+            msg = f"the {kind.upper()} output {p} must end in {suffix[kind]}"
+            raise ValidationError(msg)
+        if p.exists() and not overwrite:
+            msg = f"{p} exists; pass --overwrite to replace it"
+            raise ProcessingError(msg)
+        if not p.parent.is_dir():
+            msg = f"cannot write {p}: folder {p.parent} does not exist"
+            raise ProcessingError(msg)
+    resolved = [p.resolve() for p in paths.values()]
+    if len(set(resolved)) != len(resolved):
+        msg = f"the outputs must be three different files, got {[str(p) for p in paths.values()]}"
+        raise ValidationError(msg)
+
+
+def _check_calibrated(
+    cal: Calibration, cameras: Sequence[str], session: Path, cal_source: str
+) -> None:
+    names = [c.name for c in cal.cameras]
+    todo = (
+        f"calibrate the rig with this recording: mocaprig calibrate vicon {session} VICON.c3d "
+        "--out calib.toml (every D415 of the recording needs a pose and a clock)"
+    )
+    for cam in cameras:
+        if cam not in names:
+            msg = (
+                f"{session}: camera {cam} has no entry in the calibration {cal_source} "
+                f"(it has {names}); {todo}"
+            )
+            raise ProcessingError(msg)
+        try:
+            cal.clock(cam)
+        except CalibrationError as err:
+            msg = (
+                f"{session}: camera {cam} has no clock mapping in the calibration {cal_source} "
+                f"(it has {[c.device for c in cal.clocks]}), so its frames cannot be put on the "
+                f"{cal.reference_clock} clock; {todo}"
+            )
+            raise ProcessingError(msg) from err
+
+
+def run_replay(
+    session: str | Path,
+    calibration: Calibration | str | Path,
+    *,
+    out: str | Path,
+    c3d: str | Path | None = None,
+    csv: str | Path | None = None,
+    predictor: DemocapPredictor | None = None,
+    every: int = 1,
+    overwrite: bool = False,
+    crop_box_m: Box | None = DEFAULT_CROP_BOX_M,
+    merge_radius_m: float = 0.010,
+    tolerance: float = INSTANT_TOLERANCE,
+    batch: int = 16,
+    progress: Callable[[int, int], None] | None = None,
+) -> ReplayResult:
+    """Replay a recording through DeMoCap (module doc) and write MCAP, C3D and CSV results.
+
+    Args:
+        session: The recording (``.mcap``) with D415 streams.
+        calibration: Its calibration, or the path of the calibration file.
+        out: The results MCAP (``.mcap``).
+        c3d: The C3D (default: beside ``out``, same stem, ``.c3d``).
+        csv: The CSV (default: beside ``out``, same stem, ``.csv``).
+        predictor: The network (default: the committed ``lite`` checkpoint).
+        every: Process every n-th instant (1 = all).
+        overwrite: Replace existing outputs.
+        crop_box_m: Points outside this world box (m) are dropped before the merge; None keeps
+            every point. Default: the capture box of the training data.
+        merge_radius_m: Views' points closer than this are merged (m).
+        tolerance: Instant grouping tolerance (fraction of the frame period).
+        batch: Instants per network batch.
+        progress: Optional ``(done, total)`` callback over the instants (the marker measurement
+            draws its own bar on stderr when this is given).
+
+    Returns:
+        The :class:`ReplayResult` (the outputs are written).
+
+    Raises:
+        ProcessingError: an output exists (without ``overwrite``), the recording has no D415
+            stream, a camera of the recording has no calibration entry or clock mapping, or
+            no instant has a usable cloud; the checkpoint does not match.
+        ValidationError: bad ``every``, ``batch``, ``tolerance`` or output suffixes.
+        CalibrationError: the calibration file is unreadable, or a D415 stream of the
+            recording has no ``camera_info`` (intrinsics).
+        RecordingError: the recording is unreadable.
+    """
+    from acquire.recording import Recording
+    from calib.markers import crop_volume, frame_times, measure_recording, merge_views, to_world
+
+    t_start = time.monotonic()
+    if isinstance(every, bool) or int(every) != every or every < 1:
+        msg = f"every must be an integer >= 1, got {every!r}"
+        raise ValidationError(msg)
+    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
+        msg = f"batch must be an integer >= 1, got {batch!r}"
+        raise ValidationError(msg)
+    session_path = Path(session)
+    out_path = Path(out)
+    c3d_default, csv_default = default_outputs(out_path)
+    paths = {
+        "mcap": out_path,
+        "c3d": c3d_default if c3d is None else Path(c3d),
+        "csv": csv_default if csv is None else Path(csv),
+    }
+    _check_outputs(paths, overwrite)
+    if isinstance(calibration, Calibration):
+        cal, cal_source = calibration, "given"
+    else:
+        cal, cal_source = read_calibration(calibration), str(calibration)
+    box = None
+    if crop_box_m is not None:
+        box = np.asarray(crop_box_m, dtype=np.float64)
+        if box.shape != (3, 2):
+            msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
+            raise ValidationError(msg)
+
+    with Recording(session_path) as rec:
+        t_dev = frame_times(rec)
+        if not t_dev:
+            msg = f"{session_path}: no D415 stream in the recording; nothing to replay"
+            raise ProcessingError(msg)
+        cameras = tuple(sorted(t_dev))
+        _check_calibrated(cal, cameras, session_path, cal_source)
+        t_ref = {c: cal.clock(c).to_reference_ns(t_dev[c]) for c in cameras}
+        grouping = group_instants(t_dev, t_ref, tolerance=tolerance)
+        selected = grouping.instants[:: int(every)]
+        _log.info(
+            "%s: %d instants from %d cameras (period %.3f ms), %d selected (every %d)",
+            session_path,
+            len(grouping.instants),
+            len(cameras),
+            grouping.period_ns / 1e6,
+            len(selected),
+            every,
+        )
+        wanted: dict[str, list[int]] = {c: [] for c in cameras}
+        for inst in selected:
+            for c, d in inst.frames.items():
+                wanted[c].append(d)
+        t0 = time.monotonic()
+        measured = measure_recording(rec, frames_t_dev_ns=wanted, progress=progress is not None)
+        t_measure = time.monotonic() - t0
+
+    by_time = {c: {f.t_dev_ns: f for f in frames} for c, frames in measured.items()}
+    poses = {c: cal.camera(c).T_world_cam for c in cameras}
+    clouds: list[F64] = []
+    kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
+    skipped = 0
+    for inst in selected:
+        views = []
+        for c, d in inst.frames.items():
+            f = by_time.get(c, {}).get(d)
+            if f is None:
+                continue
+            p = to_world(f.xyz_cam_m, poses[c])
+            views.append(p if box is None else crop_volume(p, box[:, 0], box[:, 1]))
+        cloud = merge_views(views, radius_m=merge_radius_m)
+        if cloud.shape[0] < 2:
+            skipped += 1
+            continue
+        clouds.append(cloud)
+        kept.append((inst.t_ref_ns, len(views)))
+    if skipped:
+        _log.warning("%s: %d instants skipped (fewer than 2 points)", session_path, skipped)
+    if not clouds:
+        msg = (
+            f"{session_path}: none of the {len(selected)} instants has 2 or more marker points "
+            "after the merge; are the markers lit and inside the capture box?"
+        )
+        raise ProcessingError(msg)
+
+    pred = predictor if predictor is not None else DemocapPredictor()
+    t0 = time.monotonic()
+    preds: list[Prediction] = []
+    for k in range(0, len(clouds), int(batch)):
+        preds.extend(pred.predict_many(clouds[k : k + int(batch)]))
+        if progress is not None:
+            progress(len(preds), len(clouds))
+    t_network = time.monotonic() - t0
+
+    ck = pred.checkpoint
+    result = ReplayResult(
+        session=session_path,
+        outputs=paths,
+        cameras=cameras,
+        frames_per_camera={c: int(t_dev[c].size) for c in cameras},
+        t_ref_ns=np.array([t for t, _ in kept], dtype=np.int64),
+        cameras_per_instant=np.array([n for _, n in kept], dtype=np.int64),
+        points_per_instant=np.array([c.shape[0] for c in clouds], dtype=np.int64),
+        markers_m=np.stack([p.markers_m for p in preds]),
+        joints_m=np.stack([p.joints_m for p in preds]),
+        instants_total=len(grouping.instants),
+        skipped_instants=skipped,
+        every=int(every),
+        period_ns=grouping.period_ns,
+        reference_clock=cal.reference_clock,
+        world_frame=cal.world_frame,
+        checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
+    )
+    t0 = time.monotonic()
+    write_scene_mcap(result, paths["mcap"], clouds=clouds, calibration=cal, overwrite=overwrite)
+    write_replay_c3d(result, paths["c3d"], overwrite=overwrite)
+    write_replay_csv(result, paths["csv"], overwrite=overwrite)
+    t_write = time.monotonic() - t0
+    timings = {
+        "measure_s": t_measure,
+        "network_s": t_network,
+        "write_s": t_write,
+        "total_s": time.monotonic() - t_start,
+    }
+    result = replace(result, timings_s=timings)
+    _log.info(
+        "%s: %d instants written (%s cameras per instant), %.1f points per cloud, %.1f s",
+        session_path,
+        result.instants,
+        result.camera_histogram,
+        result.mean_points,
+        timings["total_s"],
+    )
+    return result
+
+
+# ------------------------------------------------------------------------------ writers
+
+
+def _labels() -> tuple[list[str], list[str]]:
+    return list(MARKER_NAMES), [f"{JOINT_LABEL_PREFIX}{j}" for j in DEMOCAP_JOINTS]
+
+
+def _replace_atomically(tmp: Path, dst: Path, overwrite: bool) -> None:
+    if dst.exists() and not overwrite:
+        tmp.unlink(missing_ok=True)
+        msg = f"{dst} appeared while writing; pass --overwrite to replace it"
+        raise ProcessingError(msg)
+    tmp.replace(dst)
+
+
+def write_replay_csv(result: ReplayResult, path: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the replay as CSV (module doc): ``time_s`` then ``<name>_x/_y/_z`` in mm.
+
+    Raises:
+        ProcessingError: ``path`` exists and ``overwrite`` is False.
+    """
+    dst = Path(path)
+    if dst.exists() and not overwrite:
+        msg = f"{dst} exists; pass --overwrite to replace it"
+        raise ProcessingError(msg)
+    markers, joints = _labels()
+    header = ["time_s"] + [f"{n}_{a}" for n in markers + joints for a in "xyz"]
+    values = np.concatenate([result.markers_m, result.joints_m], axis=1).reshape(
+        result.instants, -1
+    )
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    with tmp.open("w", encoding="utf-8", newline="\n") as fh:
+        fh.write(",".join(header) + "\n")
+        for t, row in zip(result.t_ref_ns.tolist(), values * 1e3, strict=True):
+            sec, ns = divmod(int(t), 1_000_000_000)
+            fh.write(f"{sec}.{ns:09d}," + ",".join(f"{v:.3f}" for v in row) + "\n")
+    _replace_atomically(tmp, dst, overwrite)
+    _log.info("wrote %s (%d instants)", dst, result.instants)
+    return dst
+
+
+def write_replay_c3d(result: ReplayResult, path: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the replay as C3D (module doc): markers then ``J_<joint>``, mm, regular rows.
+
+    Raises:
+        ProcessingError: no instants.
+        ViconFileError: ``path`` exists and ``overwrite`` is False, or the write failed.
+    """
+    from calib.vicon import MarkerTrajectories, write_c3d
+
+    if not result.instants:
+        msg = "the replay has no instants; nothing to write to a C3D file"
+        raise ProcessingError(msg)
+    period = float(result.period_ns * result.every)
+    rows = np.rint((result.t_ref_ns - result.t_ref_ns[0]) / period).astype(np.int64)
+    dupes = int(result.instants - np.unique(rows).size)
+    if dupes:
+        _log.warning(
+            "%s: %d instants share a C3D row with an earlier one; kept the first", path, dupes
+        )
+    markers, joints = _labels()
+    pos = np.full((int(rows[-1]) + 1, len(markers) + len(joints), 3), np.nan)
+    both = np.concatenate([result.markers_m, result.joints_m], axis=1)
+    for i in range(result.instants - 1, -1, -1):  # reversed: the first of a row wins
+        pos[rows[i]] = both[i]
+    traj = MarkerTrajectories(
+        labels=tuple(markers + joints),
+        rate_hz=1e9 / period,
+        positions_m=pos,
+        residuals_m=np.where(np.isnan(pos[..., 0]), np.nan, 0.0),
+        first_frame=1,
+        source_unit="mm",
+        source=str(result.session),
+        metadata={"software": "mocaprig democap run"},
+    )
+    return write_c3d(path, traj, unit="mm", overwrite=overwrite)
+
+
+def _scene_schema() -> tuple[str, bytes]:
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    data: bytes = build_file_descriptor_set(SceneUpdate).SerializeToString()
+    return SceneUpdate.DESCRIPTOR.full_name, data
+
+
+_MARKER_RGBA: Final = (1.0, 0.55, 0.1, 1.0)
+_JOINT_RGBA: Final = (0.2, 0.5, 1.0, 1.0)
+_BONE_RGBA: Final = (0.9, 0.9, 0.9, 1.0)
+_CLOUD_RGBA: Final = (0.6, 0.6, 0.6, 0.6)
+
+
+def _scene(
+    entity_id: str,
+    frame_id: str,
+    t_ns: int,
+    points_m: F64,
+    size_m: float,
+    rgba: tuple[float, float, float, float],
+    metadata: Mapping[str, str],
+    *,
+    names: Sequence[str] = (),
+    bones: Sequence[tuple[int, int]] = (),
+) -> bytes:
+    from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    upd = SceneUpdate()
+    ent = upd.entities.add()
+    ent.timestamp.FromNanoseconds(int(t_ns))
+    ent.frame_id = frame_id
+    ent.id = entity_id
+    for k, v in metadata.items():
+        kv = ent.metadata.add()
+        kv.key, kv.value = k, v
+    for p in points_m:
+        s = ent.spheres.add()
+        s.pose.position.x, s.pose.position.y, s.pose.position.z = (float(v) for v in p)
+        s.pose.orientation.w = 1.0
+        s.size.x = s.size.y = s.size.z = size_m
+        s.color.r, s.color.g, s.color.b, s.color.a = rgba
+    for name, p in zip(names, points_m, strict=False):
+        tx = ent.texts.add()
+        tx.pose.position.x, tx.pose.position.y, tx.pose.position.z = (float(v) for v in p)
+        tx.pose.orientation.w = 1.0
+        tx.billboard = True
+        tx.font_size = 12.0
+        tx.scale_invariant = True
+        tx.color.r = tx.color.g = tx.color.b = tx.color.a = 1.0
+        tx.text = name
+    if bones:
+        ln = ent.lines.add()
+        ln.type = LinePrimitive.Type.LINE_LIST
+        ln.pose.orientation.w = 1.0
+        ln.thickness = 3.0
+        ln.scale_invariant = True
+        ln.color.r, ln.color.g, ln.color.b, ln.color.a = _BONE_RGBA
+        for a, b in bones:
+            for q in (points_m[a], points_m[b]):
+                pt = ln.points.add()
+                pt.x, pt.y, pt.z = (float(v) for v in q)
+    data: bytes = upd.SerializeToString()
+    return data
+
+
+def write_scene_mcap(
+    result: ReplayResult,
+    path: str | Path,
+    *,
+    clouds: Sequence[npt.ArrayLike] | None = None,
+    calibration: Calibration | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write the replay as a Foxglove MCAP (module doc): SceneUpdate per instant and channel.
+
+    Args:
+        result: The replay.
+        path: Output ``.mcap``.
+        clouds: The fused input clouds (one ``(Ni, 3)`` per instant, world m) for
+            :data:`CLOUD_TOPIC`; None leaves that channel out.
+        calibration: Attached as ``calibration.toml`` when given.
+        overwrite: Replace an existing file.
+
+    Raises:
+        ProcessingError: ``path`` exists and ``overwrite`` is False, or the write failed.
+    """
+    from mcap.writer import CompressionType, Writer
+
+    from acquire import __version__
+    from acquire.recording_format import PROFILE
+    from calib.calibration import calibration_bytes
+
+    dst = Path(path)
+    if dst.exists() and not overwrite:
+        msg = f"{dst} exists; pass --overwrite to replace it"
+        raise ProcessingError(msg)
+    if clouds is not None and len(clouds) != result.instants:
+        msg = f"clouds has {len(clouds)} entries for {result.instants} instants"
+        raise ValidationError(msg)
+    schema_name, schema_data = _scene_schema()
+    markers, joints = list(MARKER_NAMES), list(DEMOCAP_JOINTS)
+    bones = [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
+    frame = result.world_frame
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.part")
+    try:
+        with tmp.open("wb") as fh:
+            w = Writer(fh, compression=CompressionType.LZ4)
+            w.start(profile=PROFILE, library=f"mocaprig {__version__}")
+            sid = w.register_schema(schema_name, "protobuf", schema_data)
+            meta = {"frame_id": frame, "units": "m", "log_time": f"{result.reference_clock} ns"}
+            ch_m = w.register_channel(
+                MARKERS_TOPIC, "protobuf", sid, {**meta, "content": "markers"}
+            )
+            ch_j = w.register_channel(JOINTS_TOPIC, "protobuf", sid, {**meta, "content": "joints"})
+            ch_c = (
+                None
+                if clouds is None
+                else w.register_channel(CLOUD_TOPIC, "protobuf", sid, {**meta, "content": "cloud"})
+            )
+            w.add_metadata(METADATA_NAME, _metadata(result))
+            if calibration is not None:
+                now = time.time_ns()
+                w.add_attachment(
+                    create_time=now,
+                    log_time=now,
+                    name="calibration.toml",
+                    media_type="application/toml",
+                    data=calibration_bytes(calibration),
+                )
+            names_m, names_j = ",".join(markers), ",".join(joints)
+            for i in range(result.instants):
+                t = int(result.t_ref_ns[i])
+                info = {
+                    "cameras": str(int(result.cameras_per_instant[i])),
+                    "points": str(int(result.points_per_instant[i])),
+                }
+                msgs = [
+                    (
+                        ch_m,
+                        _scene(
+                            "markers",
+                            frame,
+                            t,
+                            result.markers_m[i],
+                            0.014,
+                            _MARKER_RGBA,
+                            {"names": names_m, **info},
+                        ),
+                    ),
+                    (
+                        ch_j,
+                        _scene(
+                            "skeleton",
+                            frame,
+                            t,
+                            result.joints_m[i],
+                            0.03,
+                            _JOINT_RGBA,
+                            {"names": names_j, **info},
+                            names=joints,
+                            bones=bones,
+                        ),
+                    ),
+                ]
+                if ch_c is not None and clouds is not None:
+                    pts = np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3)
+                    msgs.append((ch_c, _scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info)))
+                for ch, data in msgs:
+                    w.add_message(channel_id=ch, log_time=t, publish_time=t, data=data, sequence=i)
+            w.finish()  # type: ignore[no-untyped-call]
+        _replace_atomically(tmp, dst, overwrite)
+    except ProcessingError:
+        raise
+    except Exception as err:
+        tmp.unlink(missing_ok=True)
+        msg = f"{dst}: writing the results failed ({err}); check the folder and free space"
+        raise ProcessingError(msg) from err
+    _log.info("wrote %s (%d instants)", dst, result.instants)
+    return dst
+
+
+def _metadata(result: ReplayResult) -> dict[str, str]:
+    from acquire import __version__
+
+    return {
+        "software_version": __version__,
+        "session": str(result.session),
+        "cameras": ",".join(result.cameras),
+        "instants": str(result.instants),
+        "instants_total": str(result.instants_total),
+        "skipped_instants": str(result.skipped_instants),
+        "every": str(result.every),
+        "period_ns": str(result.period_ns),
+        "reference_clock": result.reference_clock,
+        "world_frame": result.world_frame,
+        "checkpoint": result.checkpoint,
+        "instants_by_camera_count": ",".join(
+            f"{k}:{v}" for k, v in result.camera_histogram.items()
+        ),
+    }
