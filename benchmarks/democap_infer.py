@@ -28,7 +28,13 @@ from process.democap.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
 from process.democap.config import CONFIGS
 from process.democap.dataset import make_pool, prepare_cloud
 from process.democap.geometry import to_world_frame
-from process.democap.model import DemocapNet, com3d, fuse_views_torch
+from process.democap.model import (
+    DemocapModel,
+    DemocapNet,
+    DemocapOutput,
+    fuse_views_torch,
+    view_keypoints,
+)
 from process.democap.simdata import merge_views, observe, sample_rig
 
 
@@ -44,7 +50,7 @@ def _views(frames: int, seed: int) -> list[list[np.ndarray]]:
     return out
 
 
-def _run(net: DemocapNet, size: int, views: list[list[np.ndarray]]) -> dict[str, float]:
+def _run(net: DemocapModel, size: int, views: list[list[np.ndarray]]) -> dict[str, float]:
     stages: dict[str, list[float]] = {
         k: [] for k in ("merge", "render", "network", "decode", "inverse")
     }
@@ -57,12 +63,11 @@ def _run(net: DemocapNet, size: int, views: list[list[np.ndarray]]) -> dict[str,
             f, b, norm, centre = prepare_cloud(cloud, size_px=size)
             x = torch.from_numpy(np.stack([f, b]))[:, None]
             t2 = time.perf_counter()
-            out = net(x)
+            out: DemocapOutput = net(x)
             t3 = time.perf_counter()
-            m, _ = com3d(out.markers)
-            j, _ = com3d(out.joints)
-            mk = fuse_views_torch(m[:1], m[1:])[0].double().numpy()
+            m, j = view_keypoints(out)
             jt = fuse_views_torch(j[:1], j[1:])[0].double().numpy()
+            mk = jt if m is None else fuse_views_torch(m[:1], m[1:])[0].double().numpy()
             t4 = time.perf_counter()
             to_world_frame(norm.invert(mk) + centre)
             to_world_frame(norm.invert(jt) + centre)

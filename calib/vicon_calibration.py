@@ -328,6 +328,7 @@ class _Cam:
     height: int
     K: F64
     dist: F64
+    sync_mode: int | None = None  # inter_cam_sync_mode from the recording's metadata
 
 
 def _cameras(rec: Recording, wanted: Sequence[str] | None, source: str) -> list[_Cam]:
@@ -340,6 +341,7 @@ def _cameras(rec: Recording, wanted: Sequence[str] | None, source: str) -> list[
     if not names:
         msg = f"{source}: the recording has no D415 stream (/d415/<serial>/ir)"
         raise CalibrationError(msg)
+    metadata = rec.metadata()
     out = []
     for cam in names:
         if cam not in available:
@@ -354,7 +356,9 @@ def _cameras(rec: Recording, wanted: Sequence[str] | None, source: str) -> list[
         dist = np.zeros(5)
         d = np.array(info.d, dtype=np.float64)
         dist[: min(5, d.size)] = d[:5]
-        out.append(_Cam(cam, serial, int(info.width), int(info.height), K, dist))
+        mode = metadata.get(f"device/d415/{serial}", {}).get("sync_mode")
+        sync_mode = int(mode) if mode is not None and str(mode).isdigit() else None
+        out.append(_Cam(cam, serial, int(info.width), int(info.height), K, dist, sync_mode))
     return out
 
 
@@ -518,6 +522,32 @@ def _project_frames(frames: Sequence[MarkerFrame], ref: F64, T: F64, cam: _Cam) 
     return out
 
 
+def _reprojection_cost(
+    frames: Sequence[MarkerFrame],
+    T: F64,
+    cam: _Cam,
+    vicon: _ViconInterp,
+    t_vicon_ns: npt.ArrayLike,
+    *,
+    gate_px: float,
+) -> float:
+    """Truncated reprojection cost (px²) of the frames' blobs against the Vicon markers
+    interpolated at the frames' Vicon times: each blob's distance to the nearest projected
+    marker, capped at ``gate_px``."""
+    from scipy.spatial import cKDTree
+
+    uv = _project_frames(frames, vicon.at(np.asarray(t_vicon_ns, dtype=np.int64)), T, cam)
+    total = 0.0
+    for i, f in enumerate(frames):
+        ok = np.isfinite(uv[i]).all(axis=1)
+        if ok.any():
+            d, _ = cKDTree(uv[i][ok]).query(f.uv_px, distance_upper_bound=gate_px)
+            total += float((np.minimum(d, gate_px) ** 2).sum())
+        else:
+            total += gate_px**2 * f.n_markers
+    return total
+
+
 def _grid_offset(
     frames: Sequence[MarkerFrame],
     T: F64,
@@ -532,22 +562,13 @@ def _grid_offset(
     """The device → Vicon offset (ns) minimising the truncated reprojection cost: a coarse grid
     (5 × ``step_ns``, gate 2 × ``gate_px``) over ±``half_width_ns``, then ``step_ns`` around
     the coarse minimum."""
-    from scipy.spatial import cKDTree
 
     t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
     used = [k for k, f in enumerate(frames) if f.n_markers > 0]
+    sub = [frames[k] for k in used]
 
     def cost(delta: int, gate: float) -> float:
-        uv = _project_frames([frames[k] for k in used], vicon.at(t_dev[used] + delta), T, cam)
-        total = 0.0
-        for i, k in enumerate(used):
-            ok = np.isfinite(uv[i]).all(axis=1)
-            if ok.any():
-                d, _ = cKDTree(uv[i][ok]).query(frames[k].uv_px, distance_upper_bound=gate)
-                total += float((np.minimum(d, gate) ** 2).sum())
-            else:
-                total += gate**2 * frames[k].n_markers
-        return total
+        return _reprojection_cost(sub, T, cam, vicon, t_dev[used] + delta, gate_px=gate)
 
     if not used:
         return prior_ns
@@ -872,6 +893,14 @@ def calibrate_vicon(
     # Clocks and final poses, iterated twice: per-camera stretch offsets, then one pooled clock
     # line for the hardware-synchronised cameras, then each camera's bundle adjustment.
     mappings: dict[str, ClockMapping] = {}
+    by_name = {c.name: c for c in cams}
+
+    def shift_cost(name: str, m: ClockMapping) -> float:
+        # Reprojection cost of every third frame read, at the Vicon times m gives them.
+        fr = frames_all[name][::3]
+        t_ref = m.to_reference_ns(np.array([f.t_dev_ns for f in fr], dtype=np.int64))
+        return _reprojection_cost(fr, poses[name], by_name[name], interp, t_ref, gate_px=3.0)
+
     for _ in range(2):
         own: dict[str, ClockMapping] = {}
         for cam in cams:
@@ -889,7 +918,11 @@ def calibrate_vicon(
             for c in cams
         }
         mappings, pool_notes = _pooled_clocks(
-            {c.name: (stamps[c.name], counters[c.name]) for c in cams}, clock_fits, own
+            {c.name: (stamps[c.name], counters[c.name]) for c in cams},
+            clock_fits,
+            own,
+            shift_cost,
+            {c.name: c.sync_mode for c in cams},
         )
         for cam in cams:
             if opt.clock_method == "claps+speed":
@@ -1111,10 +1144,35 @@ def _tie_by_counters(t_c: I64, n_c: I64, t_p: I64, n_p: I64, shift: int) -> _Tie
     return _Tie(float(coef[0]), float(coef[1]) * 1e-9, centre, len(kc), rms, shift)
 
 
+def _through_tie(
+    name: str, tie: _Tie, pivot_map: ClockMapping, *, delay_ns: float = 0.0, method: str
+) -> ClockMapping:
+    """Camera ``name``'s mapping: its time → the pivot's (``tie``) → Vicon (``pivot_map``),
+    plus ``delay_ns`` (the camera's own constant, e.g. a slave's trigger delay)."""
+    a, s, centre = tie.a_ns, tie.s, tie.centre_ns
+    dp = pivot_map.drift_ppm * 1e-6
+    # Anchored where the camera's time maps onto the pivot map's anchor.
+    anchor = round((pivot_map.anchor_ns - a + s * centre) / (1.0 + s))
+    t_pa = anchor + a + s * (anchor - centre)
+    offset = t_pa - anchor + pivot_map.offset_ns + delay_ns + dp * (t_pa - pivot_map.anchor_ns)
+    return ClockMapping(
+        device=name,
+        reference=pivot_map.reference,
+        offset_ns=round(offset),
+        drift_ppm=(s + dp * (1.0 + s)) * 1e6,
+        anchor_ns=anchor,
+        offset_sigma_ns=pivot_map.offset_sigma_ns,
+        drift_sigma_ppm=pivot_map.drift_sigma_ppm,
+        method=method,
+    )
+
+
 def _pooled_clocks(
     frames: Mapping[str, tuple[I64, I64]],
     fits: Mapping[str, tuple[F64, F64, F64]],
     own: Mapping[str, ClockMapping],
+    score: Callable[[str, ClockMapping], float] | None = None,
+    sync_modes: Mapping[str, int | None] | None = None,
 ) -> tuple[dict[str, ClockMapping], list[str]]:
     """One Vicon clock line through the stretch offsets of every hardware-synchronised camera.
 
@@ -1123,27 +1181,44 @@ def _pooled_clocks(
     through their device times ties each camera's clock to the pivot's to well under a µs and
     0.1 ppm (frame counters pair the frames: host arrival times cannot be relied on, and a
     camera's own Vicon line can be off by more than a frame period). The counter shift is
-    ambiguous by whole periods; the one that puts the camera's stretch offsets closest to the
-    pivot's own line (median) is kept. Every camera's stretch offsets are then moved onto the
-    pivot's clock and one robust weighted fit (:func:`_shared_drift_fit`) gives one drift from
-    all of them (N cameras' worth of data) and an offset per camera (a slave exposes a fixed
-    trigger delay after the master, and a wrong counter shift is a whole period: both are
-    constant per camera), then composed back per camera.
-    A camera whose frames do not pair (free-running, counters restarted, too little data)
-    keeps its own line, and a note says so.
+    ambiguous by whole periods: the one whose mapping (the pivot's own line through the tie)
+    gives the lowest ``score`` (the reprojection cost of the camera's frames) is kept, or
+    without ``score`` the one that puts the camera's stretch offsets closest to the pivot's
+    line. Every camera's stretch offsets are then moved onto the pivot's clock and one robust
+    weighted line (:func:`_shared_line_fit`) is fitted through all of them (N cameras' worth
+    of data; a camera whose own stretches are poor is outvoted instead of getting a poor
+    clock), plus a constant per camera from its inlier stretches (a slave exposes a fixed
+    trigger delay after the pulse). A camera whose frames do not pair (free-running, counters
+    restarted, too little data) keeps its own line, and a note says so.
 
     Args:
         frames: Per camera the frames' ``(device times ns, frame counters)``.
         fits: Per camera ``(t_dev, offset, σ)`` of its stretches (ns).
         own: Per camera the line through its own stretches alone.
+        score: ``(camera, candidate mapping) -> cost``, lower is better.
+        sync_modes: Per camera its recorded ``inter_cam_sync_mode`` (None: unknown). Only
+            masters (1), slaves (2) and unknowns are pooled: a camera in mode 0 free-runs on
+            its own crystal, and a free-running camera at the same frame rate can pair with
+            the master's frames on a line (its phase slides linearly), so the frame times
+            alone cannot always tell it.
 
     Returns:
         ``(mapping per camera, notes)``.
     """
-    names = list(own)
     out = dict(own)
+    modes = sync_modes or {}
+    notes: list[str] = []
+    names = []
+    for n in own:
+        if modes.get(n) not in (None, 1, 2):
+            notes.append(
+                f"{n}: clock fitted on its own: recorded with inter_cam_sync_mode "
+                f"{modes.get(n)} (not a master or slave)"
+            )
+        else:
+            names.append(n)
     if len(names) < 2:
-        return out, []
+        return out, notes
     pivot = min(
         names,
         key=lambda n: own[n].drift_sigma_ppm if math.isfinite(own[n].drift_sigma_ppm) else 1e9,
@@ -1151,7 +1226,6 @@ def _pooled_clocks(
     t_p, n_p = frames[pivot]
     line_p = own[pivot]
     rel: dict[str, _Tie] = {pivot: _Tie(0.0, 0.0, 0.0, len(t_p), 0.0, 0)}
-    notes: list[str] = []
     for n in names:
         if n == pivot:
             continue
@@ -1168,12 +1242,15 @@ def _pooled_clocks(
             tie = _tie_by_counters(t_c, n_c, t_p, n_p, shift)
             if tie is None:
                 continue
-            t_w, d_w, _ = fits[n]
-            tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
-            on_pivot = (t_w + d_w - tp_w) - (line_p.to_reference_ns(tp_w.round()) - tp_w.round())
-            score = float(np.median(np.abs(on_pivot)))
-            if best is None or score < best[0]:
-                best = (score, tie)
+            if score is not None:
+                cost = score(n, _through_tie(n, tie, line_p, method="candidate"))
+            else:
+                t_w, d_w, _ = fits[n]
+                tp_w = (t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)).round()
+                on_pivot = (t_w + d_w - tp_w) - (line_p.to_reference_ns(tp_w) - tp_w)
+                cost = float(np.median(np.abs(on_pivot)))
+            if best is None or cost < best[0]:
+                best = (cost, tie)
         if best is None:
             notes.append(
                 f"{n}: clock fitted on its own: its frames do not pair with {pivot}'s (no frame "
@@ -1199,7 +1276,7 @@ def _pooled_clocks(
         d_all.append(t_w + d_w - tp_w)
         s_all.append(s_w)
         cam_all.append(np.full(len(t_w), c))
-    offsets, drift_ppm, anchor_p, off_sig, drift_sig = _shared_drift_fit(
+    pooled, delays, delay_sig = _shared_line_fit(
         pivot,
         np.concatenate(t_all),
         np.concatenate(d_all),
@@ -1207,80 +1284,58 @@ def _pooled_clocks(
         np.concatenate(cam_all),
         len(rel),
     )
-    method = f"reprojection, drift pooled over {len(rel)} synchronised cameras"
-    dp = drift_ppm * 1e-6
+    method = f"reprojection, pooled over {len(rel)} synchronised cameras"
     for c, (n, tie) in enumerate(rel.items()):
-        a, s, centre = tie.a_ns, tie.s, tie.centre_ns
-        # Camera time t_c → pivot time t_p = t_c + a + s·(t_c − centre) → Vicon by the shared
-        # drift and the camera's own offset; anchored where t_p is the pooled anchor.
-        anchor = round((anchor_p - a + s * centre) / (1.0 + s))
-        t_pa = anchor + a + s * (anchor - centre)
-        offset = t_pa - anchor + offsets[c] + dp * (t_pa - anchor_p)
-        out[n] = ClockMapping(
-            device=n,
-            reference="vicon",
-            offset_ns=round(offset),
-            drift_ppm=(s + dp * (1.0 + s)) * 1e6,
-            anchor_ns=anchor,
-            offset_sigma_ns=off_sig[c],
-            drift_sigma_ppm=drift_sig,
-            method=method,
+        m = _through_tie(n, tie, pooled, delay_ns=delays[c], method=method)
+        out[n] = dataclasses.replace(
+            m, offset_sigma_ns=math.hypot(pooled.offset_sigma_ns, delay_sig[c])
         )
     notes.append(
-        f"clock: one drift fitted through the stretch offsets of {len(rel)} hardware-"
-        f"synchronised cameras (pivot {pivot}; an offset per camera), each camera's clock tied "
-        "to the pivot's by its frame times"
+        f"clock: one line fitted through the stretch offsets of {len(rel)} hardware-"
+        f"synchronised cameras (pivot {pivot}), each camera's clock tied to the pivot's by its "
+        "frame times, plus its own constant delay"
     )
     return out, notes
 
 
-def _shared_drift_fit(
-    pivot: str, t_ns: F64, delta_ns: F64, sigma_ns: F64, cam: npt.NDArray[np.int_], n_cams: int
-) -> tuple[list[float], float, int, list[float], float]:
-    """Weighted fit of ``delta = offset[cam] + drift·(t − anchor)`` (ns; t on the pivot's
-    clock) with the stretch weighting and robust rejection of :func:`_line_clock`.
+#: Fewest inlier stretches for a camera's own constant delay in the pooled clock; with fewer
+#: it gets none (0 ± the pooled line's σ).
+_MIN_DELAY_STRETCHES: Final = 3
 
-    Returns ``(offsets ns per camera, drift ppm, anchor ns, offset σ ns per camera, drift σ
-    ppm)``; a camera left with no stretch gets a NaN offset σ and the median offset of its
-    stretches.
+
+def _shared_line_fit(
+    pivot: str, t_ns: F64, delta_ns: F64, sigma_ns: F64, cam: npt.NDArray[np.int_], n_cams: int
+) -> tuple[ClockMapping, list[float], list[float]]:
+    """Robust weighted line ``delta = offset + drift·(t − anchor)`` (ns; ``t`` on the pivot's
+    clock) through every camera's stretches, with the weighting and rejection of
+    :func:`_line_clock`, then per camera the median of its inlier residuals (its constant
+    delay, with ≥ :data:`_MIN_DELAY_STRETCHES` inliers).
+
+    Returns ``(the pivot's mapping, delay ns per camera, delay σ ns per camera)``.
     """
     ok = np.isfinite(sigma_ns) & np.isfinite(delta_ns) & np.isfinite(t_ns)
     t_ns, delta_ns, sigma_ns, cam = t_ns[ok], delta_ns[ok], sigma_ns[ok], cam[ok]
     w = 1.0 / (sigma_ns**2 + _STRETCH_SIGMA_FLOOR_NS**2)
-    anchor = round(float((w * t_ns).sum() / w.sum()))
-    A = np.zeros((len(t_ns), n_cams + 1))
-    A[np.arange(len(t_ns)), cam] = 1.0
-    A[:, n_cams] = (t_ns - anchor) * 1e-9
-    keep = np.ones(len(t_ns), dtype=bool)
-    z = np.zeros(len(t_ns))
-    for _ in range(len(t_ns)):
-        wk = w * keep
-        M = A.T @ (A * wk[:, None]) + np.eye(n_cams + 1) * 1e-30
-        cov = np.linalg.pinv(M)
-        coef = cov @ (A.T @ (wk * delta_ns))
-        z = (delta_ns - A @ coef) * np.sqrt(w)
-        scale = max(1.4826 * float(np.median(np.abs(z[keep]))), 1.0)
-        worse = keep & (np.abs(z) > _STRETCH_REJECT_SIGMA * scale)
-        # Keep at least 3 stretches per camera that still has them.
-        per_cam = np.bincount(cam[keep], minlength=n_cams)
-        worse &= per_cam[cam] > 3
-        if not worse.any():
-            break
-        keep[np.argmax(np.where(worse, np.abs(z), -np.inf))] = False
-    n_rej = int((~keep).sum())
-    if n_rej:
-        _log.info("%s clock (pooled): %d of %d stretches rejected", pivot, n_rej, len(keep))
-    chi2 = float((z[keep] ** 2).sum()) / max(int(keep.sum()) - n_cams - 1, 1)
-    cov = cov * max(chi2, 1.0)
-    offsets, off_sig = [], []
+    pooled = _line_clock(pivot, t_ns, delta_ns, sigma_ns)
+    res = delta_ns - (pooled.to_reference_ns(t_ns.round()) - t_ns.round())
+    z = res * np.sqrt(w)
+    scale = max(1.4826 * float(np.median(np.abs(z))), 1.0)
+    inlier = np.abs(z) <= _STRETCH_REJECT_SIGMA * scale
+    delays, sig = [], []
     for c in range(n_cams):
-        if (keep & (cam == c)).any():
-            offsets.append(float(coef[c]))
-            off_sig.append(math.sqrt(cov[c, c]))
+        r = res[inlier & (cam == c)]
+        if len(r) >= _MIN_DELAY_STRETCHES:
+            med = float(np.median(r))
+            delays.append(med)
+            sig.append(1.2533 * 1.4826 * float(np.median(np.abs(r - med))) / math.sqrt(len(r)))
         else:
-            offsets.append(float(np.median(delta_ns[cam == c])) if (cam == c).any() else 0.0)
-            off_sig.append(math.nan)
-    return offsets, float(coef[n_cams]) * 1e-3, anchor, off_sig, math.sqrt(cov[-1, -1]) * 1e-3
+            delays.append(0.0)
+            sig.append(0.0)
+    _log.info(
+        "%s clock (pooled): %d of %d stretches inliers; delays %s µs",
+        pivot, int(inlier.sum()), len(inlier), [round(d / 1e3, 1) for d in delays],
+    )  # fmt: skip
+    return pooled, delays, sig
 
 
 def _time_align_clock(

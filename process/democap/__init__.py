@@ -2,9 +2,11 @@
 
 Pipeline: normalisation into the [0.1, 0.9] cuboid (:mod:`.geometry`), front/back orthographic
 renders, the staged markers-to-pose network and CoM3D decoding (:mod:`.model`), dual-view
-fusion, inverse normalisation (:mod:`.infer`). Training data is simulated at the marker level
-(:mod:`.simdata`, :mod:`.dataset`); :mod:`.train` trains, :mod:`.evaluate` measures, and
-:mod:`.replay` runs the network on a calibrated recording.
+fusion, inverse normalisation (:mod:`.infer`); the baselines of paper Table 2 and a
+direct-regression network are ``DemocapConfig.variant`` values (:func:`build_network`).
+Training data is simulated at the marker level (:mod:`.simdata`, :mod:`.dataset`);
+:mod:`.train` trains, :mod:`.evaluate` measures, and :mod:`.replay` runs the network on a
+calibrated recording.
 """
 
 from __future__ import annotations
@@ -17,16 +19,17 @@ from process.democap.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from process.democap.config import CONFIGS, DemocapConfig, config_by_name
+from process.democap.config import CONFIGS, VARIANTS, DemocapConfig, config_by_name
 from process.democap.evaluate import EvalReport, evaluate
 from process.democap.infer import DemocapPredictor, Prediction
-from process.democap.model import DemocapNet
+from process.democap.model import DemocapNet, build_network
 from process.democap.replay import ReplayResult, run_replay, score_replay
 from process.democap.train import TrainOptions, train
 
 __all__ = [
     "CONFIGS",
     "DEFAULT_CHECKPOINT",
+    "VARIANTS",
     "Checkpoint",
     "DemocapConfig",
     "DemocapNet",
@@ -35,6 +38,7 @@ __all__ = [
     "Prediction",
     "ReplayResult",
     "TrainOptions",
+    "build_network",
     "config_by_name",
     "demo_figures",
     "evaluate",

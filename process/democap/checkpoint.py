@@ -2,7 +2,8 @@
 
 A checkpoint is a ``torch.save`` dict holding ``format`` (``"mocaprig-democap"``),
 ``format_version``, the config (:meth:`DemocapConfig.to_dict`), the marker and joint names in
-output order, the model state and, for resuming, the optimiser and scheduler state, the
+output order, the model state (of the config's ``variant``; a config without the key is
+markers-to-pose) and, for resuming, the optimiser and scheduler state, the
 number of finished epochs, the seed and the loss history. Loading checks all of them against
 this code and raises :class:`acquire.errors.ProcessingError` naming what differs.
 """
@@ -18,7 +19,7 @@ import torch
 from acquire.errors import ProcessingError
 from process.body import DEMOCAP_JOINTS, MARKER_NAMES
 from process.democap.config import DemocapConfig
-from process.democap.model import DemocapNet
+from process.democap.model import DemocapModel, build_network
 
 __all__ = [
     "DEFAULT_CHECKPOINT",
@@ -40,7 +41,7 @@ class Checkpoint:
     """A loaded checkpoint (mutable: training updates it in place)."""
 
     config: DemocapConfig
-    model: DemocapNet
+    model: DemocapModel
     epoch: int = 0
     seed: int = 0
     optimizer_state: dict[str, Any] | None = None
@@ -105,7 +106,7 @@ def load_checkpoint(path: Path) -> Checkpoint:
             raise ProcessingError(msg)
     try:
         cfg = DemocapConfig.from_dict(dict(data["config"]))
-        model = DemocapNet(cfg, num_markers=len(MARKER_NAMES), num_joints=len(DEMOCAP_JOINTS))
+        model = build_network(cfg, num_markers=len(MARKER_NAMES), num_joints=len(DEMOCAP_JOINTS))
         model.load_state_dict(data["model"])
     except Exception as exc:
         msg = f"{path}: the weights do not match the stored config ({exc}); the file is damaged"

@@ -14,7 +14,13 @@ from typing import Any
 
 from acquire.cli import ProgressBar, add_json_flag, emit_json
 
-__all__ = ["democap_eval", "democap_run", "democap_train", "register_democap"]
+__all__ = [
+    "VARIANT_CHOICES",
+    "democap_eval",
+    "democap_run",
+    "democap_train",
+    "register_democap",
+]
 
 _EPILOG = """\
 examples:
@@ -24,9 +30,12 @@ examples:
   mocaprig democap eval --cameras 2 --seed 3
   mocaprig democap eval --motion walk.bvh --json                a motion never trained on
   mocaprig democap run session.mcap --calib calib.toml --out results.mcap   replay a recording
-
-Not implemented yet: the baselines (pose, markers+pose, direct regression).
+  mocaprig democap train --variant pose --out pose.pt --epochs 4   a baseline (docs/democap.md)
 """
+
+#: ``DemocapConfig.variant`` values (spelled out here: importing the config would import
+#: torch through the package, and ``mocaprig --help`` must stay fast).
+VARIANT_CHOICES = ("markers-to-pose", "pose", "markers+pose", "regression")
 
 _TRAIN_EPILOG = """\
 Training data is simulated on the fly (marker-level D415 model, see docs/democap.md) and is
@@ -36,12 +45,20 @@ examples:
   mocaprig democap train --config lite --out lite.pt --epochs 40 --threads 2
   mocaprig democap train --out lite.pt --epochs 80 --resume
   mocaprig democap train --config lite --out lite.pt --overwrite --max-minutes 30
+  mocaprig democap train --variant markers+pose --out mp.pt --epochs 4 --threads 1
+
+--variant picks the network of a new run: markers-to-pose (DeMoCap, the default) or one of the
+baselines of paper Table 2 (pose: joint heat maps only; markers+pose: both super-stages
+predict markers and joints) or a direct-regression network (regression). A resumed run keeps
+its checkpoint's variant.
 """
 
 _EVAL_EPILOG = """\
 The test set uses subjects, marker placements and takes never used in training (one take per
 procedural action and subject), or a BVH motion (--motion) retargeted onto new subjects.
-MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm.
+MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm. Any variant's
+checkpoint can be evaluated; a pose baseline estimates no markers, so its MPMPE, RMSPMPE and
+MPJAE are reported as n/a (null with --json).
 
 examples:
   mocaprig democap eval
@@ -90,6 +107,12 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     tr.add_argument("--config", choices=("lite", "paper"), default="lite", help="network size")
+    tr.add_argument(
+        "--variant",
+        choices=VARIANT_CHOICES,
+        default=None,
+        help="network variant of a new run (default: markers-to-pose)",
+    )
     tr.add_argument("--out", required=True, metavar="CKPT", help="checkpoint file to write")
     tr.add_argument("--epochs", type=int, default=40, help="train until this many epochs")
     tr.add_argument("--resume", action="store_true", help="continue the run stored in --out")
@@ -154,9 +177,30 @@ def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], in
 
 
 def democap_train(args: argparse.Namespace) -> int:
-    """Handler of ``mocaprig democap train``; returns 0."""
+    """Handler of ``mocaprig democap train``; returns 0.
+
+    Raises:
+        ValidationError: ``--variant`` with ``--resume`` names another variant than the
+            checkpoint's.
+    """
+    import dataclasses
+
+    from acquire.errors import ValidationError
+    from process.democap.checkpoint import load_checkpoint
     from process.democap.config import config_by_name
     from process.democap.train import TrainOptions, train
+
+    if args.resume and args.variant is not None:
+        stored = load_checkpoint(Path(args.out)).config.variant
+        if stored != args.variant:
+            msg = (
+                f"{args.out} is a {stored!r} run; --variant applies to new runs only "
+                "(leave it out to resume, or train a new run with --overwrite)"
+            )
+            raise ValidationError(msg)
+    config = config_by_name(args.config)
+    if args.variant is not None:
+        config = dataclasses.replace(config, variant=args.variant)
 
     opts = TrainOptions(
         epochs=args.epochs,
@@ -170,7 +214,7 @@ def democap_train(args: argparse.Namespace) -> int:
     ckpt = train(
         Path(args.out),
         opts,
-        config=config_by_name(args.config),
+        config=config,
         resume=args.resume,
         overwrite=args.overwrite,
         progress=ProgressBar("democap train"),
@@ -179,6 +223,7 @@ def democap_train(args: argparse.Namespace) -> int:
     summary: dict[str, Any] = {
         "checkpoint": str(args.out),
         "config": ckpt.config.name,
+        "variant": ckpt.config.variant,
         "epochs": ckpt.epoch,
         "loss": last.get("loss"),
         "val_mpjpe_mm": last.get("val_mpjpe_mm"),
@@ -187,7 +232,8 @@ def democap_train(args: argparse.Namespace) -> int:
         emit_json(summary)
     else:
         print(
-            f"{args.out}: {ckpt.config.name}, {ckpt.epoch} epochs, loss {summary['loss']}, "
+            f"{args.out}: {ckpt.config.name} {ckpt.config.variant}, {ckpt.epoch} epochs, "
+            f"loss {summary['loss']}, "
             f"held-out MPJPE {summary['val_mpjpe_mm']} mm"
         )
     return 0
@@ -213,6 +259,7 @@ def democap_eval(args: argparse.Namespace) -> int:
     out: dict[str, Any] = {
         "checkpoint": str(args.ckpt or "committed lite"),
         "config": predictor.checkpoint.config.name,
+        "variant": predictor.checkpoint.config.variant,
         "motion": args.motion or "procedural (held-out)",
         "seed": args.seed,
         **main,
@@ -222,15 +269,21 @@ def democap_eval(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(out)
         return 0
+    if not predictor.predicts_markers:
+        print(f"{out['variant']} baseline: no markers, so no MPMPE and no MPJAE")
     for k, r in reports.items():
         print(
             f"{k} cameras: MPJPE {r['mpjpe_mm']:.1f} mm, RMSPJPE {r['rmspjpe_mm']:.1f} mm, "
-            f"MPMPE {r['mpmpe_mm']:.1f} mm, PCK@50 {100 * r['pck50']:.1f} %, "
-            f"MPJAE {r['mpjae_deg']:.1f} deg ({r['frames']} frames)"
+            f"MPMPE {_fmt(r['mpmpe_mm'], ' mm')}, PCK@50 {100 * r['pck50']:.1f} %, "
+            f"MPJAE {_fmt(r['mpjae_deg'], ' deg')} ({r['frames']} frames)"
         )
         acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
         print(f"  per action (mm): {acts}")
     return 0
+
+
+def _fmt(value: float | None, unit: str) -> str:
+    return "n/a" if value is None else f"{value:.1f}{unit}"
 
 
 def democap_run(args: argparse.Namespace) -> int:

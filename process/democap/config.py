@@ -15,10 +15,21 @@ from typing import Any, Literal
 
 from acquire.errors import ValidationError
 
-__all__ = ["CONFIGS", "ConfigName", "DemocapConfig", "HeadActivation", "config_by_name"]
+__all__ = [
+    "CONFIGS",
+    "VARIANTS",
+    "ConfigName",
+    "DemocapConfig",
+    "HeadActivation",
+    "Variant",
+    "config_by_name",
+]
 
 ConfigName = Literal["lite", "paper"]
 HeadActivation = Literal["relu", "softplus"]
+Variant = Literal["markers-to-pose", "pose", "markers+pose", "regression"]
+#: The network variants (paper §5.3.1, Table 2, plus a direct-regression baseline).
+VARIANTS: tuple[Variant, ...] = ("markers-to-pose", "pose", "markers+pose", "regression")
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,6 +59,13 @@ class DemocapConfig:
             centre), so ``lite`` uses ``"softplus"``, which keeps zMean positive and keeps a
             gradient where a ReLU has none.
             Checkpoints without the key are ReLU.
+        variant: what the network predicts and how (paper §5.3.1; :mod:`.model`):
+            ``"markers-to-pose"`` (DeMoCap: 53 marker maps, then 19 joint maps from F and
+            the marker maps), ``"pose"`` (only the 19 joint maps, one stack of stages as deep
+            as both super-stages), ``"markers+pose"`` (both super-stages predict all 72 maps)
+            or ``"regression"`` (no heat maps: a conv encoder, global pooling and fully
+            connected layers regress the 72 normalised coordinates per view). The last three
+            are baselines. Checkpoints without the key are markers-to-pose.
     """
 
     name: str
@@ -70,6 +88,7 @@ class DemocapConfig:
     coord_weight: float = 2.0
     heatmap_weight: float = 1.0
     head: HeadActivation = "relu"
+    variant: Variant = "markers-to-pose"
 
     def __post_init__(self) -> None:
         n = len(self.stage_branches)
@@ -91,6 +110,12 @@ class DemocapConfig:
         if self.head not in ("relu", "softplus"):
             msg = f"config {self.name!r}: head must be 'relu' or 'softplus', got {self.head!r}"
             raise ValidationError(msg)
+        if self.variant not in VARIANTS:
+            msg = (
+                f"config {self.name!r}: variant must be one of {', '.join(VARIANTS)}, "
+                f"got {self.variant!r}"
+            )
+            raise ValidationError(msg)
         if self.input_px % 4 or self.input_px < 32:
             msg = f"config {self.name!r}: input_px must be a multiple of 4, >= 32"
             raise ValidationError(msg)
@@ -104,6 +129,11 @@ class DemocapConfig:
     def num_stages(self) -> int:
         """Heat-map stages per super-stage: the start transition plus the HRNet stages."""
         return 1 + len(self.stage_branches)
+
+    @property
+    def predicts_markers(self) -> bool:
+        """Whether the variant estimates the 53 markers (all but ``"pose"``)."""
+        return self.variant != "pose"
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON form (tuples become lists)."""

@@ -9,7 +9,9 @@ Metrics (:mod:`process.metrics`): joints over the paper's 17 evaluation joints (
 joints left out, democap-method.md §5), markers over all 53. MPJAE uses segment orientations
 built the same way for truth and estimate: the bone direction (joint to child joint) and a
 marker pair across the segment, orthogonalised (the paper combines bone directions with
-marker groups; its exact construction is not published).
+marker groups; its exact construction is not published). A network without markers (the
+``"pose"`` baseline) gets no marker figures and no MPJAE: MPMPE, RMSPMPE, MPJAE and RMSPJAE
+are None (JSON null).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from acquire.errors import ValidationError
 from process.body import DEMOCAP_JOINTS, MARKER_NAMES, BvhClip
+from process.democap.config import Variant
 from process.democap.dataset import make_pool, make_sample, pool_from_bvh
 from process.democap.infer import DemocapPredictor
 from process.democap.simdata import PoseFrames
@@ -94,18 +97,21 @@ def segment_quaternions(joints: npt.ArrayLike, markers: npt.ArrayLike) -> FloatA
 
 @dataclass(frozen=True, slots=True)
 class EvalReport:
-    """Figures of one evaluation run (see :class:`process.metrics.PoseMetrics`)."""
+    """Figures of one evaluation run (see :class:`process.metrics.PoseMetrics`); ``variant`` is
+    the evaluated network's (``"pose"``: no marker figures, no MPJAE)."""
 
     metrics: PoseMetrics
     num_cameras: int
     joint_names: tuple[str, ...]
     points_per_frame: float
     markers_seen: float
+    variant: Variant = "markers-to-pose"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict; per-joint errors keyed by joint name."""
         d = asdict(self.metrics)
         d["per_joint_mm"] = dict(zip(self.joint_names, d["per_joint_mm"], strict=True))
+        d["variant"] = self.variant
         d["num_cameras"] = self.num_cameras
         d["points_per_frame"] = self.points_per_frame
         d["markers_seen"] = self.markers_seen
@@ -134,6 +140,8 @@ def evaluate(
     pool: list[PoseFrames] | None = None,
 ) -> EvalReport:
     """Run ``predictor`` on a held-out simulated test set and measure it.
+
+    A predictor without markers (``"pose"``) gets None for the marker figures and MPJAE.
 
     Args:
         predictor: the loaded network.
@@ -176,14 +184,15 @@ def evaluate(
     pred_m, pred_j = np.array(pm) * 1000.0, np.array(pj) * 1000.0
     true_m, true_j = np.array(tm) * 1000.0, np.array(tj) * 1000.0
     keep = list(EVAL_JOINTS)
+    markers = predictor.predicts_markers  # "pose": no markers, so no segment frames either
     met = pose_metrics(
         pred_j[:, keep],
         true_j[:, keep],
-        pred_markers_mm=pred_m,
-        true_markers_mm=true_m,
+        pred_markers_mm=pred_m if markers else None,
+        true_markers_mm=true_m if markers else None,
         actions=actions,
-        q_pred=segment_quaternions(pred_j, pred_m),
-        q_true=segment_quaternions(true_j, true_m),
+        q_pred=segment_quaternions(pred_j, pred_m) if markers else None,
+        q_true=segment_quaternions(true_j, true_m) if markers else None,
     )
     return EvalReport(
         metrics=met,
@@ -191,4 +200,5 @@ def evaluate(
         joint_names=tuple(DEMOCAP_JOINTS[k] for k in keep),
         points_per_frame=float(np.mean([len(c) for c in clouds])),
         markers_seen=float(np.mean(seen)),
+        variant=predictor.checkpoint.config.variant,
     )

@@ -1,4 +1,9 @@
-"""Inference: a fused marker cloud (world, m) -> 53 labelled markers + 19 joints (world, m)."""
+"""Inference: a fused marker cloud (world, m) -> 53 labelled markers + 19 joints (world, m).
+
+Every network variant (``DemocapConfig.variant``) decodes the same way: per-view keypoints
+(CoM3D of the heat maps, or the regressed coordinates), Eq. 7 fusion, inverse normalisation.
+The ``"pose"`` baseline predicts no markers: its marker estimates are NaN.
+"""
 
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ from acquire.check import check_finite, check_shape
 from process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
 from process.democap.dataset import prepare_cloud
 from process.democap.geometry import Normalisation, to_world_frame
-from process.democap.model import DemocapNet, com3d, fuse_views_torch
+from process.democap.model import DemocapModel, DemocapOutput, fuse_views_torch, view_keypoints
 
 __all__ = ["DemocapPredictor", "Prediction", "decode"]
 
@@ -24,22 +29,30 @@ FloatArray = npt.NDArray[np.float64]
 
 @dataclass(frozen=True, slots=True)
 class Prediction:
-    """One frame's estimate, world frame, metres: markers (53, 3) and joints (19, 3)."""
+    """One frame's estimate, world frame, metres: markers (53, 3) and joints (19, 3).
+
+    The markers are all NaN for a network that does not estimate them (the ``"pose"``
+    baseline; :attr:`DemocapPredictor.predicts_markers`).
+    """
 
     markers_m: FloatArray
     joints_m: FloatArray
 
 
 def decode(
-    net: DemocapNet, front: torch.Tensor, back: torch.Tensor
+    net: DemocapModel, front: torch.Tensor, back: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Both views through ``net`` in one batch, CoM3D, Eq. 7 fusion -> normalised front-frame
-    markers (B, 53, 3) and joints (B, 19, 3)."""
+    """Both views through ``net`` in one batch, per-view keypoints (CoM3D, or the regressed
+    coordinates), Eq. 7 fusion -> normalised front-frame markers (B, 53, 3) and joints
+    (B, 19, 3). The markers are NaN for a network without them (``"pose"``)."""
     b = front.shape[0]
-    out = net(torch.cat([front, back], dim=0))
-    m, _ = com3d(out.markers)
-    j, _ = com3d(out.joints)
-    return fuse_views_torch(m[:b], m[b:]), fuse_views_torch(j[:b], j[b:])
+    out: DemocapOutput = net(torch.cat([front, back], dim=0))
+    m, j = view_keypoints(out)
+    joints = fuse_views_torch(j[:b], j[b:])
+    if m is None:
+        nan = torch.full((b, net.num_markers, 3), float("nan"), dtype=j.dtype, device=j.device)
+        return nan, joints
+    return fuse_views_torch(m[:b], m[b:]), joints
 
 
 def _to_world(n: FloatArray, norm: Normalisation, centre: FloatArray) -> FloatArray:
@@ -66,6 +79,8 @@ class DemocapPredictor:
         self.checkpoint = ckpt
         self.net = ckpt.model.eval()
         self.size_px = ckpt.config.input_px
+        #: whether the network estimates the markers (not the ``"pose"`` baseline)
+        self.predicts_markers = ckpt.config.predicts_markers
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 

@@ -414,7 +414,8 @@ def run_replay(
     Raises:
         ProcessingError: an output exists (without ``overwrite``), the recording has no D415
             stream, a camera of the recording has no calibration entry or clock mapping, or
-            no instant has a usable cloud; the checkpoint does not match.
+            no instant has a usable cloud; the checkpoint does not match or estimates no
+            markers (the ``"pose"`` baseline).
         ValidationError: bad ``every``, ``batch``, ``tolerance`` or output suffixes.
         CalibrationError: the calibration file is unreadable, or a D415 stream of the
             recording has no ``camera_info`` (intrinsics).
@@ -430,6 +431,12 @@ def run_replay(
     if isinstance(batch, bool) or int(batch) != batch or batch < 1:
         msg = f"batch must be an integer >= 1, got {batch!r}"
         raise ValidationError(msg)
+    if predictor is not None and not predictor.predicts_markers:
+        msg = (
+            f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "
+            "estimates no markers; the replay writes markers, so use a markers-to-pose one"
+        )
+        raise ProcessingError(msg)
     session_path = Path(session)
     out_path = Path(out)
     c3d_default, csv_default = default_outputs(out_path)

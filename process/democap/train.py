@@ -21,7 +21,7 @@ from acquire.errors import ValidationError
 from process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from process.democap.config import DemocapConfig
 from process.democap.dataset import make_batch, make_pool, make_sample
-from process.democap.model import DemocapNet, democap_loss
+from process.democap.model import DemocapModel, build_network, democap_loss
 
 __all__ = ["TrainOptions", "train"]
 
@@ -52,7 +52,7 @@ class TrainOptions:
 
 
 def _optimizer(
-    model: DemocapNet, cfg: DemocapConfig
+    model: DemocapModel, cfg: DemocapConfig
 ) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.StepLR]:
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_decay_epochs, gamma=cfg.lr_decay)
@@ -73,7 +73,8 @@ def train(
     Args:
         out: checkpoint path.
         options: see :class:`TrainOptions`.
-        config: the network config for a new run (ignored when resuming).
+        config: the network config for a new run, its ``variant`` included (ignored when
+            resuming: the checkpoint's config is used).
         resume: continue from ``out``.
         overwrite: allow replacing an existing ``out`` with a new run.
         progress: ``(done_steps, total_steps)`` callback for this call.
@@ -97,7 +98,7 @@ def train(
             msg = "a new training run needs a config (e.g. config_by_name('lite'))"
             raise ValidationError(msg)
         torch.manual_seed(options.seed)
-        ckpt = Checkpoint(config=config, model=DemocapNet(config), seed=options.seed)
+        ckpt = Checkpoint(config=config, model=build_network(config), seed=options.seed)
     cfg = ckpt.config
     torch.set_num_threads(max(1, options.threads))
     batch = options.batch_size or cfg.batch_size
@@ -180,7 +181,7 @@ def _validation_set(seed: int, size_px: int, n: int = 48) -> _Val:
     return out
 
 
-def _validate(model: DemocapNet, val: _Val) -> float:
+def _validate(model: DemocapModel, val: _Val) -> float:
     """Mean joint error (mm, 17 joints without the toes) on the fixed held-out samples."""
     from process.democap.infer import decode  # local: infer imports this module's siblings
 
