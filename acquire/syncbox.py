@@ -79,6 +79,9 @@ class SyncBoxIdentity:
     port: str
     version: int
     board: str
+    features: tuple[str, ...] = ()
+    """Feature tokens after the board (``"toggle"``: pin D10 flips at every pulse, for a
+    Vicon analog input; docs/syncbox-protocol.md)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,10 +177,11 @@ class SyncBox:
             self._close_port()
             raise
         _log.info(
-            "sync box on %s: protocol %d, board %s",
+            "sync box on %s: protocol %d, board %s, features %s",
             self.port,
             self.identity.version,
             self.identity.board,
+            " ".join(self.identity.features) or "none",
         )
         return self.identity
 
@@ -416,7 +420,7 @@ class SyncBox:
                 "mocaprig"
             )
             raise DeviceError(msg)
-        return SyncBoxIdentity(self.port, version, board)
+        return SyncBoxIdentity(self.port, version, board, tuple(parts[3:]))
 
     # -- commands --------------------------------------------------------------------------
 

@@ -14,25 +14,41 @@ trains DeMoCap (:mod:`process.democap.simdata`), on the *same* poses and the *sa
   poses at the same instants, seen by the same cameras (``--sim-repeats`` draws per instant).
 
 Both go through the same analysis: per view, blobs are matched to the projected true markers
-(Hungarian, gate ``--gate-px``); per marker and view the angle between the skin normal and the
-line of sight and the line-of-sight clearance to the body capsules (the segment camera → 12 mm
-short of the marker centre, its gap to every capsule surface; < 0 = blocked); the depth error
-is the lifted point's camera Z minus the true centre's; blobs matched to no body marker are
-strays (the clapperboard's two markers counted apart). Fusion is the replay's: camera → world,
-capture-box crop, :func:`calib.markers.merge_views` at 10 mm (single linkage, all views).
+(Hungarian, gate ``--gate-px``). Per marker and view: the angle between the skin normal and the
+line of sight; the *normalised gap*, the clearance of the segment camera → marker centre from
+the nearest body capsule surface (its own limb included) as an angle at the closest approach,
+in units of the marker's angular radius (≥ 1: the sphere wholly in view, 0: half, ≤ −1: none;
+"clear" = ≥ 0); the distance in the image to the nearest projected marker that is not farther
+(blob merging); detection, the depth error (lifted camera Z minus the true centre's) and the
+blob centre error. Blobs matched to no body marker are strays, on the suit (within 30 mm of a
+capsule surface) or off the body (in the recordings: the clapperboard's two markers). Fusion is
+the replay's: camera → world, capture-box crop, 10 mm single-linkage merge over all views (as
+:func:`calib.markers.merge_views`); per instant the points, the markers with a point, the
+markers whose detections stay in two or more points, the points with no body marker in them,
+and each point's distance to the nearest true marker.
+
+Also reported: the cloud size and per-view detection of the training distribution itself
+(:func:`process.democap.dataset.make_sample`: random bodies, placements and rigs), and with
+``--network`` the committed checkpoint's MPJPE on the measured clouds and on simdata's clouds
+of the same instants (does the network meet the same difficulty?).
 
 Prints a table and, as its last line, one JSON object (``measured``, ``simdata``, per-statistic
-``tolerance`` and ``within``).
+``comparison`` with ``tolerance`` and ``within``, ``training_distribution``, ``network``).
 
-Run (≈ 3 min the first time, the measured detections are cached in ``--cache``)::
+Run (≈ 2 min wall in all on the shared 2-core machine, 70 s of it measuring the 2,396 frames
+of 599 instants, which ``--cache`` keeps for the next run)::
 
     nice -n 10 .venv/bin/python benchmarks/democap_simdata_match.py \
-        --sessions /tmp/sim30_s3 /tmp/sim30_s7 --cache /tmp/simmatch
+        --sessions /tmp/sim30_s3 /tmp/sim30_s7 --cache /tmp/simmatch --network
+
+The sessions measured for docs/democap.md: ``mocaprig simulate``, 30 s, seeds 3 and 7, default
+scenario, 4 D415s, D415 streams only (any simulated session with ``truth/`` will do).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
 from dataclasses import dataclass
@@ -46,7 +62,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from process.body import Motion, forward_kinematics
+from process.body import Motion, democap_joints, forward_kinematics
 from process.body.surface import capsules
 from process.democap import simdata
 
@@ -59,8 +75,8 @@ MERGE_RADIUS_M = 0.010
 ANGLE_EDGES = (0.0, 30.0, 60.0, 75.0, 90.0, 105.0, 120.0, 180.0)
 #: Camera-Z bins (m) of the depth-error table.
 Z_EDGES = (1.5, 2.2, 2.6, 3.0, 4.0)
-#: Clearance bins (px at the occluder) for the detection and depth-error tables.
-GAP_EDGES = (-1e9, 0.0, 3.0, 6.0, 1e9)
+#: Normalised-gap bins (occlusion) of the detection and depth-error tables.
+GAP_EDGES = (-1e9, -1.0, -0.5, 0.0, 0.5, 0.9, 1e9)
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -79,6 +95,7 @@ def _seg_dist(p0: F64, p1: F64, q0: F64, q1: F64) -> tuple[F64, F64]:
     t = (b * s + f) / np.where(e > 1e-12, e, 1.0)
     lo, hi = t < 0, t > 1
     t = np.clip(t, 0.0, 1.0)
+    a = np.where(a > 1e-12, a, 1.0)
     s = np.where(lo, np.clip(-c / a, 0, 1), np.where(hi, np.clip((b - c) / a, 0, 1), s))
     diff = (p0 + s[..., None] * d1) - (q0 + t[..., None] * d2)
     return np.asarray(np.linalg.norm(diff, axis=-1)), np.asarray(s)
@@ -119,36 +136,27 @@ class World:
     caps_b: F64
     caps_r: F64  # (C,)
     clapper: F64  # (K, 3), K = 0 for simdata
+    joints: F64  # (19, 3) DeMoCap joints
 
 
 def marker_features(world: World, view: View, radius_m: float) -> dict[str, F64]:
-    """Per body marker: camera Z, range, normal angle (deg), uv, clearance (m and px)."""
+    """Per body marker: camera Z, normal angle (deg), uv and the normalised gap.
+
+    The normalised gap is the clearance of the segment camera -> marker centre from the
+    nearest body capsule surface (its own limb included), as an angle at the closest approach,
+    in units of the marker's angular radius: >= 1 the sphere is wholly in view, 0 half of it
+    (a straight occluding edge through its centre), <= -1 none of it.
+    """
     m = world.markers
     v = view.centre - m
     dist = np.linalg.norm(v, axis=-1)
     ang = np.degrees(np.arccos(np.clip(np.sum(v * world.normals, -1) / dist, -1.0, 1.0)))
     uv, z = view.project(m)
-    end = m + v / dist[:, None] * (radius_m + 0.005)
-    start = np.broadcast_to(view.centre, end.shape)
-    d, s = _seg_dist(
-        start[:, None, :], end[:, None, :], world.caps_a[None], world.caps_b[None]
-    )  # (M, C)
-    gap = d - world.caps_r[None]
-    k = np.argmin(gap, axis=1)
-    rows = np.arange(m.shape[0])
-    # Depth of the closest approach, to express the gap in pixels there.
-    z_occ = np.maximum(s[rows, k] * (1.0 - (radius_m + 0.005) / dist) * z, 0.05)
-    gap_m = gap[rows, k]
-    return {
-        "z": z,
-        "dist": dist,
-        "angle": ang,
-        "u": uv[:, 0],
-        "v": uv[:, 1],
-        "gap_m": gap_m,
-        "gap_px": gap_m * view.k[0, 0] / z_occ,
-        "z_occ": z_occ,
-    }
+    start = np.broadcast_to(view.centre, m.shape)
+    d, s = _seg_dist(start[:, None, :], m[:, None, :], world.caps_a[None], world.caps_b[None])
+    z_seg = np.maximum(s * z[:, None], 0.05)
+    gap = ((d - world.caps_r[None]) * z[:, None] / (z_seg * radius_m)).min(axis=1)
+    return {"z": z, "angle": ang, "u": uv[:, 0], "v": uv[:, 1], "gap": gap}
 
 
 def match(uv_blob: F64, uv_true: F64, gate_px: float) -> I64:
@@ -191,10 +199,12 @@ class Records:
     view: dict[str, list[float]]
     inst: dict[str, list[float]]
     fused_dist: list[F64]
+    clouds: list[F64]
+    joints: list[F64]
 
     @classmethod
     def empty(cls) -> Records:
-        return cls({}, {}, {}, {}, [])
+        return cls({}, {}, {}, {}, [], [], [])
 
     def add(self, table: dict[str, list[Any]], row: dict[str, Any]) -> None:
         for key, val in row.items():
@@ -230,10 +240,11 @@ def analyse_instant(
     """Match, featurise and fuse one rig instant (views' blobs ``uv`` px, ``xyz`` camera m)."""
     world_pts, labels = [], []
     n_markers = worlds[0].markers.shape[0]
-    seen = np.zeros(n_markers, bool)
     for cam, (world, view, uv, xyz) in enumerate(zip(worlds, views, uvs, xyzs, strict=True)):
         feat = marker_features(world, view, radius_m)
-        uv_all = np.concatenate([np.stack([feat["u"], feat["v"]], 1), view.project(world.clapper)[0]])
+        uv_all = np.concatenate(
+            [np.stack([feat["u"], feat["v"]], 1), view.project(world.clapper)[0]]
+        )
         z_all = np.concatenate([feat["z"], view.to_cam(world.clapper)[:, 2]])
         j = match(uv, uv_all, gate_px)
         has_z = np.isfinite(xyz[:, 2])
@@ -248,7 +259,8 @@ def analyse_instant(
         dv[j[body]] = uv[body, 1] - feat["v"][j[body]]
         inside = (feat["z"] > 0.3) & (feat["u"] >= 0) & (feat["u"] <= W - 1)
         inside &= (feat["v"] >= 0) & (feat["v"] <= H - 1)
-        # Nearest other projected point (px) that is nearer to the camera (blob merging).
+        # Nearest other projected marker (px, the clapperboard's included) that is not more
+        # than 5 cm farther from the camera (blob merging).
         dd = np.linalg.norm(uv_all[:n_markers, None] - uv_all[None], axis=-1)
         dd[np.arange(n_markers), np.arange(n_markers)] = np.inf
         dd = np.where(z_all[None] < feat["z"][:, None] + 0.05, dd, np.inf)
@@ -267,25 +279,34 @@ def analyse_instant(
                 "nn_px": np.nan_to_num(dd.min(axis=1), nan=np.inf, posinf=1e3),
             },
         )
-        # Blobs not matched to a body marker: strays (clapperboard apart).
-        kind = np.where(body, 0.0, np.where(j >= n_markers, 1.0, 2.0))
-        d_near = (
-            np.nanmin(np.linalg.norm(uv[:, None] - uv_all[None, :n_markers], axis=-1), axis=1)
-            if uv.shape[0]
-            else np.zeros(0)
-        )
-        rec.add(rec.blob, {"kind": kind, "has_z": has_z.astype(float), "d_near_px": d_near})
+        # Blobs not matched to a body marker: strays, on the suit (within 30 mm of a capsule
+        # surface) or off the body (for the recordings: the clapperboard's markers).
+        kind = np.where(body, 0.0, 2.0)
+        stray = np.flatnonzero(~body & has_z)
+        if stray.size:
+            p = xyz[stray] @ view.r_cw + view.centre
+            ab = world.caps_b - world.caps_a
+            t = np.clip(
+                np.einsum("pci,ci->pc", p[:, None] - world.caps_a[None], ab)
+                / np.maximum(np.einsum("ci,ci->c", ab, ab), 1e-12),
+                0.0,
+                1.0,
+            )
+            q = world.caps_a[None] + t[..., None] * ab[None]
+            surf = (np.linalg.norm(p[:, None] - q, axis=-1) - world.caps_r[None]).min(axis=1)
+            kind[stray] = np.where(np.abs(surf) < 0.03, 2.0, 3.0)
+        rec.add(rec.blob, {"kind": kind, "has_z": has_z.astype(float)})
         rec.add(
             rec.view,
             {
                 "view_blobs": float(uv.shape[0]),
-                "view_clapper": float(np.sum(kind == 1)),
-                "view_stray": float(np.sum(kind == 2)),
+                "view_clapper": float(np.sum(j >= n_markers)),
+                "view_on_suit": float(np.sum(kind == 2)),
+                "view_off_body": float(np.sum(kind == 3)),
                 "view_det": float(det.sum()),
                 "view_inside": float(inside.sum()),
             },
         )
-        seen |= det & np.isfinite(zmeas)
         p = xyz[has_z] @ view.r_cw + view.centre
         world_pts.append(p)
         labels.append(np.where(body, j, np.where(j >= n_markers, n_markers, -1))[has_z])
@@ -307,6 +328,8 @@ def analyse_instant(
         fused = sums / np.bincount(cl, minlength=n_clusters)[:, None]
         d = np.linalg.norm(fused[:, None] - worlds[0].markers[None], axis=-1).min(axis=1)
         rec.fused_dist.append(d)
+        rec.clouds.append(fused)
+        rec.joints.append(worlds[0].joints)
     rec.add(
         rec.inst,
         {
@@ -386,7 +409,7 @@ def measure_session(folder: Path, every: int, cache: Path | None) -> Session:
         t_mid = np.stack([mids[c][pk[:, c]] for c in range(len(rig))], axis=1)
         uv_l, xyz_l, cnt = [], [], []
         for i in range(pk.shape[0]):
-            for c, lab in enumerate(labels):
+            for lab in labels:
                 f = measured[lab][i]
                 if f.t_dev_ns != wanted[lab][i]:
                     msg = f"{lab}: frame {i} measured out of order"
@@ -421,6 +444,7 @@ def _worlds(scenario: Any, t_ns: I64) -> list[World]:
     ws = scenario.sample(t_ns)
     kin = forward_kinematics(ws.pose, scenario.shape)
     caps = capsules(kin, scenario.shape)
+    joints = democap_joints(kin)
     return [
         World(
             ws.markers_m[i],
@@ -429,6 +453,7 @@ def _worlds(scenario: Any, t_ns: I64) -> list[World]:
             caps.b_m[i],
             caps.radius_m,
             ws.clapper_m[i],
+            joints[i],
         )
         for i in range(t_ns.size)
     ]
@@ -459,12 +484,12 @@ def analyse_simdata(
     """simdata's records on the same poses and cameras; returns ms per observation."""
     t_ref = sess.t_mid_ns[:, 0]
     pose = scenario.sample(t_ref).pose
-    frames = simdata.pose_frames(
-        Motion("recording", 30.0, pose), scenario.shape, scenario.markers
-    )
+    frames = simdata.pose_frames(Motion("recording", 30.0, pose), scenario.shape, scenario.markers)
     cams = [simdata.Camera(v.centre, v.r_cw, float(v.k[0, 0])) for v in sess.views]
     k_sim = [
-        np.array([[c.focal_px, 0, simdata.IMAGE_W / 2], [0, c.focal_px, simdata.IMAGE_H / 2], [0, 0, 1]])
+        np.array(
+            [[c.focal_px, 0, simdata.IMAGE_W / 2], [0, c.focal_px, simdata.IMAGE_H / 2], [0, 0, 1]]
+        )
         for c in cams
     ]
     views = [View(k, c.r_cw, c.centre_m) for k, c in zip(k_sim, cams, strict=True)]
@@ -480,6 +505,7 @@ def analyse_simdata(
             frames.caps_b_m[i],
             frames.caps_radius_m,
             np.zeros((0, 3)),
+            frames.joints_m[i],
         )
         for _ in range(repeats):
             t0 = time.perf_counter()
@@ -497,41 +523,281 @@ def analyse_simdata(
     return 1e3 * spent / max(n, 1)
 
 
+# ----------------------------------------------------------------------------- statistics
+
+
+def _mad(x: F64) -> float:
+    return float(np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
+
+
+def _rate(x: npt.NDArray[Any]) -> float:
+    return float(np.mean(x)) if x.size else float("nan")
+
+
+def statistics(tabs: dict[str, dict[str, F64]]) -> dict[str, float]:
+    """The compared statistics of one source (rates in [0, 1], depths in mm, lateral in px)."""
+    mv, blob, view, inst = tabs["mv"], tabs["blob"], tabs["view"], tabs["inst"]
+    out: dict[str, float] = {}
+    det = mv["det"] > 0
+    inside = mv["inside"] > 0
+    out["det_per_view"] = _rate(det)
+    out["det_of_in_image"] = _rate(det[inside])
+    for lo, hi in itertools.pairwise(ANGLE_EDGES):
+        sel = inside & (mv["angle"] >= lo) & (mv["angle"] < hi) & (mv["gap"] >= 0.0)
+        out[f"det_angle_{lo:.0f}_{hi:.0f}_clear"] = _rate(det[sel])
+    for lo, hi in itertools.pairwise(GAP_EDGES):
+        sel = inside & (mv["gap"] >= lo) & (mv["gap"] < hi) & (mv["nn_px"] >= 10)
+        out[f"det_gap_{lo:g}_{hi:g}"] = _rate(det[sel])
+    sel = inside & (mv["gap"] >= 0.0) & (mv["nn_px"] < 5.0)
+    out["det_neighbour_within_5px"] = _rate(det[sel])
+    has = mv["has_z"] > 0
+    dz = mv["dz"][has] * 1e3
+    out["dz_median_mm"] = float(np.median(dz))
+    out["dz_mad_mm"] = _mad(dz)
+    for q in (1, 5, 10, 25, 75, 90, 95, 99):
+        out[f"dz_p{q}_mm"] = float(np.percentile(dz, q))
+    out["dz_below_-50mm"] = _rate(dz < -50)
+    out["dz_above_+30mm"] = _rate(dz > 30)
+    # Against distance: bias and spread of fully visible markers (the D415's noise), and the
+    # share of the occlusion tail (the error distribution is bimodal: its median is not a
+    # stable figure).
+    for lo, hi in itertools.pairwise(Z_EDGES):
+        sel = has & (mv["z"] >= lo) & (mv["z"] < hi)
+        d = mv["dz"][sel & (mv["gap"] >= 0.9)] * 1e3
+        out[f"dz_median_clear_z_{lo:g}_{hi:g}_mm"] = float(np.median(d)) if d.size else np.nan
+        out[f"dz_mad_clear_z_{lo:g}_{hi:g}_mm"] = _mad(d)
+        out[f"dz_below_-30mm_z_{lo:g}_{hi:g}"] = _rate(mv["dz"][sel] < -0.03)
+    for lo, hi in itertools.pairwise(ANGLE_EDGES):
+        sel = has & (mv["angle"] >= lo) & (mv["angle"] < hi)
+        d = mv["dz"][sel] * 1e3
+        out[f"dz_median_angle_{lo:.0f}_{hi:.0f}_mm"] = float(np.median(d)) if d.size else np.nan
+    for name, sel in (
+        ("clear", has & (mv["gap"] >= 0.9)),
+        ("partly_hidden", has & (mv["gap"] < 0.5)),
+    ):
+        d = mv["dz"][sel] * 1e3
+        out[f"dz_median_{name}_mm"] = float(np.median(d))
+        out[f"dz_p10_{name}_mm"] = float(np.percentile(d, 10))
+        out[f"dz_p90_{name}_mm"] = float(np.percentile(d, 90))
+    lat = np.hypot(mv["du"], mv["dv"])[det]
+    for q in (50, 90, 99):
+        out[f"lateral_p{q}_px"] = float(np.percentile(lat, q))
+    out["blobs_per_view"] = float(np.mean(view["view_blobs"]))
+    out["stray_on_suit_per_view"] = float(np.mean(view["view_on_suit"]))
+    out["stray_off_body_per_view"] = float(np.mean(view["view_off_body"]))
+    out["clapperboard_blobs_per_view"] = float(np.mean(view["view_clapper"]))
+    out["stray_with_depth"] = _rate(blob["has_z"][blob["kind"] >= 2])
+    out["points_per_cloud"] = float(np.mean(inst["points"]))
+    out["points_per_cloud_sd"] = float(np.std(inst["points"]))
+    out["markers_seen"] = float(np.mean(inst["seen"]))
+    out["markers_with_unmerged_duplicates"] = float(np.mean(inst["dup_markers"]))
+    out["duplicate_points"] = float(np.mean(inst["extra_points"]))
+    out["non_marker_points"] = float(np.mean(inst["non_marker_points"]))
+    fd = tabs["fused"]["dist"] * 1e3
+    out["fused_dist_median_mm"] = float(np.median(fd))
+    out["fused_within_30mm"] = _rate(fd < 30)
+    return out
+
+
+#: Tolerances of the comparison: (statistic, kind, value); kind "abs" = |sim - meas| <= value,
+#: "rel" = |sim - meas| <= value·|meas|.
+TOLERANCES: tuple[tuple[str, str, float], ...] = (
+    ("det_per_view", "abs", 0.03),
+    ("det_angle_0_30_clear", "abs", 0.04),
+    ("det_angle_30_60_clear", "abs", 0.04),
+    ("det_angle_60_75_clear", "abs", 0.04),
+    ("det_angle_75_90_clear", "abs", 0.06),
+    ("det_angle_90_105_clear", "abs", 0.06),
+    ("det_angle_105_120_clear", "abs", 0.06),
+    ("det_gap_-1_-0.5", "abs", 0.1),
+    ("det_gap_-0.5_0", "abs", 0.08),
+    ("det_neighbour_within_5px", "abs", 0.1),
+    ("dz_median_mm", "abs", 3.0),
+    ("dz_mad_mm", "abs", 3.0),
+    ("dz_p5_mm", "abs", 15.0),
+    ("dz_p10_mm", "abs", 10.0),
+    ("dz_p25_mm", "abs", 5.0),
+    ("dz_p75_mm", "abs", 3.0),
+    ("dz_p95_mm", "abs", 4.0),
+    ("dz_below_-50mm", "abs", 0.03),
+    ("dz_median_clear_z_2.2_2.6_mm", "abs", 3.0),
+    ("dz_median_clear_z_2.6_3_mm", "abs", 3.0),
+    ("dz_mad_clear_z_2.2_2.6_mm", "abs", 2.0),
+    ("dz_mad_clear_z_2.6_3_mm", "abs", 2.0),
+    ("dz_below_-30mm_z_2.2_2.6", "abs", 0.04),
+    ("dz_below_-30mm_z_2.6_3", "abs", 0.04),
+    ("dz_median_clear_mm", "abs", 3.0),
+    ("dz_median_partly_hidden_mm", "abs", 10.0),
+    ("dz_p10_partly_hidden_mm", "abs", 20.0),
+    ("lateral_p50_px", "abs", 0.1),
+    ("lateral_p90_px", "abs", 0.3),
+    ("stray_on_suit_per_view", "rel", 0.15),
+    ("stray_off_body_per_view", "rel", 0.2),
+    ("points_per_cloud", "rel", 0.05),
+    ("markers_seen", "abs", 1.5),
+    ("markers_with_unmerged_duplicates", "rel", 0.1),
+    ("non_marker_points", "rel", 0.15),
+    ("fused_dist_median_mm", "abs", 2.0),
+    ("fused_within_30mm", "abs", 0.04),
+)
+
+
+def compare(meas: dict[str, float], sim: dict[str, float]) -> dict[str, dict[str, Any]]:
+    """Per toleranced statistic: measured, simdata, tolerance and whether it is met."""
+    out = {}
+    for key, kind, tol in TOLERANCES:
+        m, s = meas[key], sim[key]
+        lim = tol if kind == "abs" else tol * abs(m)
+        out[key] = {
+            "measured": round(m, 4),
+            "simdata": round(s, 4),
+            "tolerance": f"±{tol:g}" if kind == "abs" else f"±{100 * tol:g} %",
+            "within": bool(abs(s - m) <= lim),
+        }
+    return out
+
+
+def training_clouds(samples: int, seed: int) -> dict[str, float]:
+    """Cloud size and per-camera detection of the training distribution (dataset.py)."""
+    from process.democap.dataset import make_pool, make_sample
+
+    pool = make_pool(seed, "train", takes=12, seconds=2.0)
+    rng = np.random.default_rng(seed)
+    pts, det = [], []
+    for i in range(samples):
+        take = pool[i % len(pool)]
+        smp = make_sample(take, int(rng.integers(take.num_frames)), rng, augment=False)
+        pts.append(smp.raw_m.shape[0])
+        cams = simdata.sample_rig(rng)
+        _, d = simdata.observe(take, int(rng.integers(take.num_frames)), cams, rng)
+        det.append(d.mean())
+    return {
+        "points_per_cloud": float(np.mean(pts)),
+        "points_per_cloud_sd": float(np.std(pts)),
+        "det_per_view": float(np.mean(det)),
+    }
+
+
+def network_errors(measured: Records, simulated: Records, sim_repeats: int) -> dict[str, Any]:
+    """MPJPE (17 joints, mm) of the committed checkpoint on the measured fused clouds and on
+    simdata's clouds of the same instants: does the network meet the same difficulty?"""
+    import torch
+
+    from process.democap.evaluate import EVAL_JOINTS
+    from process.democap.infer import DemocapPredictor
+
+    torch.set_num_threads(1)
+    pred = DemocapPredictor()
+    out: dict[str, Any] = {
+        "checkpoint": f"{pred.checkpoint.config.name} ({pred.checkpoint.epoch} epochs)"
+    }
+    for name, rec in (("measured", measured), ("simdata", simulated)):
+        err = []
+        for k in range(0, len(rec.clouds), 16):
+            batch = [c if c.shape[0] >= 2 else np.zeros((2, 3)) for c in rec.clouds[k : k + 16]]
+            for p, j in zip(pred.predict_many(batch), rec.joints[k : k + 16], strict=True):
+                err.append(
+                    np.linalg.norm(p.joints_m[list(EVAL_JOINTS)] - j[list(EVAL_JOINTS)], axis=1)
+                )
+        e = np.concatenate(err) * 1e3
+        out[f"mpjpe_{name}_mm"] = round(float(np.mean(e)), 1)
+        out[f"pck50_{name}"] = round(float(np.mean(e < 50.0)), 3)
+    out["sim_repeats"] = sim_repeats
+    return out
+
+
+def _fmt(v: float) -> str:
+    if not np.isfinite(v):
+        return "—"
+    return f"{v:.3f}" if abs(v) < 1 else f"{v:.1f}"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--sessions", nargs="+", type=Path, default=[Path("/tmp/sim30_s3"), Path("/tmp/sim30_s7")]
     )
-    parser.add_argument("--every", type=int, default=6, help="every n-th rig instant")
+    parser.add_argument("--every", type=int, default=3, help="every n-th rig instant")
     parser.add_argument("--cache", type=Path, default=None, help="folder caching measurements")
     parser.add_argument("--gate-px", type=float, default=3.0, help="blob-marker matching gate")
     parser.add_argument("--sim-repeats", type=int, default=2, help="simdata draws per instant")
+    parser.add_argument("--train-samples", type=int, default=200, help="training-set samples")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dump", type=Path, default=None, help="write the records (npz)")
+    parser.add_argument(
+        "--network",
+        action="store_true",
+        help="also run the committed checkpoint on both sets of clouds (MPJPE)",
+    )
     args = parser.parse_args()
 
     measured, simulated = Records.empty(), Records.empty()
     ms_obs = []
+    instants = 0
     for k, folder in enumerate(args.sessions):
         t0 = time.monotonic()
         sess = measure_session(folder, args.every, args.cache)
         t1 = time.monotonic()
         scenario = analyse_recording(folder, sess, measured, args.gate_px)
         ms_obs.append(
-            analyse_simdata(scenario, sess, simulated, args.gate_px, args.sim_repeats, args.seed + k)
+            analyse_simdata(
+                scenario, sess, simulated, args.gate_px, args.sim_repeats, args.seed + k
+            )
         )
+        instants += sess.t_mid_ns.shape[0]
         print(
             f"{folder}: {sess.t_mid_ns.shape[0]} instants, measured in {t1 - t0:.0f} s, "
             f"analysed in {time.monotonic() - t1:.0f} s"
         )
+    tabs = {"meas": measured.arrays(), "sim": simulated.arrays()}
     if args.dump is not None:
-        flat = {}
-        for src, r in (("meas", measured), ("sim", simulated)):
-            for tab, cols in r.arrays().items():
-                for col, arr in cols.items():
-                    flat[f"{src}.{tab}.{col}"] = arr
+        flat: dict[str, Any] = {
+            f"{src}.{tab}.{col}": arr
+            for src, t in tabs.items()
+            for tab, cols in t.items()
+            for col, arr in cols.items()
+        }
         np.savez(args.dump, **flat)
-    print(json.dumps({"ms_per_observation": float(np.mean(ms_obs))}))
+    st_meas, st_sim = statistics(tabs["meas"]), statistics(tabs["sim"])
+    train = training_clouds(args.train_samples, args.seed) if args.train_samples else {}
+    cmp = compare(st_meas, st_sim)
+    print(f"{'statistic':42s} {'measured':>10s} {'simdata':>10s} {'tolerance':>10s}  ok")
+    for key in st_meas:
+        row = cmp.get(key)
+        tol = row["tolerance"] if row else ""
+        ok = ("yes" if row["within"] else "NO") if row else ""
+        print(f"{key:42s} {_fmt(st_meas[key]):>10s} {_fmt(st_sim[key]):>10s} {tol:>10s}  {ok}")
+    if train:
+        print(
+            f"training distribution ({args.train_samples} samples, 4 cameras): "
+            f"{train['points_per_cloud']:.1f} ± {train['points_per_cloud_sd']:.1f} points per "
+            f"cloud, {100 * train['det_per_view']:.1f} % of the markers detected per view"
+        )
+    net = network_errors(measured, simulated, args.sim_repeats) if args.network else {}
+    if net:
+        print(
+            f"network {net['checkpoint']}: MPJPE {net['mpjpe_measured_mm']} mm on the measured "
+            f"clouds, {net['mpjpe_simdata_mm']} mm on simdata's clouds of the same instants "
+            f"(PCK@50 {net['pck50_measured']} / {net['pck50_simdata']})"
+        )
+    within = sum(r["within"] for r in cmp.values())
+    print(f"{within}/{len(cmp)} toleranced statistics within tolerance")
+    result = {
+        "benchmark": "democap_simdata_match",
+        "sessions": [str(p) for p in args.sessions],
+        "instants": instants,
+        "sim_repeats": args.sim_repeats,
+        "gate_px": args.gate_px,
+        "measured": {k: round(v, 4) for k, v in st_meas.items()},
+        "simdata": {k: round(v, 4) for k, v in st_sim.items()},
+        "comparison": cmp,
+        "within": within,
+        "toleranced": len(cmp),
+        "training_distribution": train,
+        "network": net,
+        "simdata_ms_per_observation": round(float(np.mean(ms_obs)), 3),
+    }
+    print(json.dumps(result))
     return 0
 
 

@@ -42,7 +42,9 @@ trial: each D415 is registered on that static start without an initial pose (dis
 RANSAC + ICP), matched to the Vicon markers under a strict gate and bundle-adjusted with the
 Vicon markers and the intrinsics fixed. A camera whose reprojection RMS exceeds --max-rms-px
 (default 1.5 px) or with fewer than --min-inliers observations is refused (exit 1) unless
---force is given.
+--force is given. Clocks: from the video (reprojection); when the C3D has the analog channel
+--sync-channel (default D415_SYNC: the sync box's toggle output, docs/wiring.md §7), the D415
+clocks come from its edges instead (µs, sub-ppm); the notes say which was used.
 
 examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml
@@ -50,6 +52,8 @@ examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --attach-to calibrated.mcap
   mocaprig calibrate vicon session.mcap old.c3d --unit mm --out calib.toml --overwrite
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --report report/
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel "Sync.1"
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel none
 """
 
 _EVALUATE_EPILOG = """\
@@ -101,6 +105,13 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
     )
     vic.add_argument("--camera", action="append", default=None, help="only this D415 (repeat)")
     vic.add_argument("--seed", type=int, default=0, help="seed of the coarse alignment")
+    vic.add_argument(
+        "--sync-channel",
+        default="D415_SYNC",
+        metavar="LABEL",
+        help="Vicon analog channel with the D415 frame pulses (default D415_SYNC; none: video "
+        "clocks only)",
+    )
     add_json_flag(vic)
     vic.set_defaults(func=calibrate_vicon_command)
 
@@ -151,6 +162,7 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
             msg = f"{p} exists; pass --overwrite to replace it"
             raise CalibrationError(msg)
     kw: dict[str, Any] = {"force": args.force, "seed": args.seed, "unit": args.unit}
+    kw["sync_channel"] = None if args.sync_channel.lower() == "none" else args.sync_channel
     if args.max_rms_px is not None:
         kw["max_rms_px"] = args.max_rms_px
     if args.min_inliers is not None:

@@ -18,6 +18,18 @@ Readers:
 * :func:`read_nexus_csv` — Nexus "Trajectories" CSV exports, parsed by section and line role (never
   by line number), in the modern Nexus layout and the older Workstation layout.
 * :func:`read_trajectories` — picks one of the two from the file's first bytes.
+* :func:`read_c3d_analogs` — the analog channels of a C3D file (:class:`AnalogChannels`, physical
+  units, sampled on the Vicon clock), through the same structural check and isolated decoder.
+
+Analog channels. ANALOG:USED channels are stored after the points of each frame,
+ANALOG:RATE / POINT:RATE samples per frame (header word 10), each sample one value per channel.
+Physical value = (stored − ANALOG:OFFSET) × ANALOG:SCALE × ANALOG:GEN_SCALE (c3d.org).
+``ezc3d`` 1.7.2 returns values already scaled that way, except that it uses |OFFSET| (measured,
+and so is its source: negative offsets are made positive), so :func:`read_c3d_analogs` takes
+ezc3d's values (isolated child, Intel/DEC float files) and restores the signed offset; SGI files,
+integer files (ANALOG:FORMAT may say UNSIGNED) and frames beyond 65,535 are decoded from the raw
+bytes with numpy. USED, RATE, SCALE, OFFSET and GEN_SCALE are checked against the header and one
+another before any native code runs.
 
 Missing samples. A sample is missing when any coordinate is NaN, its residual is negative (C3D's
 −1), or all three coordinates are exactly 0.0 (the convention of BTK-era tools). Missing samples are
@@ -76,6 +88,7 @@ import numpy.typing as npt
 from acquire.errors import CalibrationError, ValidationError
 
 __all__ = [
+    "AnalogChannels",
     "C3DLayout",
     "LengthUnit",
     "MarkerTrajectories",
@@ -83,6 +96,7 @@ __all__ = [
     "ViconFileError",
     "parse_length_unit",
     "read_c3d",
+    "read_c3d_analogs",
     "read_nexus_csv",
     "read_trajectories",
     "validate_c3d",
@@ -325,6 +339,127 @@ class MarkerTrajectories:
             source=self.source,
             metadata=self.metadata,
         )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class AnalogChannels:
+    """The analog channels of one trial, in physical units, sampled on the Vicon clock.
+
+    Attributes:
+        labels: channel labels, in column order (C); unique.
+        rate_hz: sampling rate (Hz): an integer multiple of ``point_rate_hz``.
+        values: (S, C) float64 samples in the channels' units (ANALOG:UNITS), S = frames ×
+            samples per frame.
+        units: unit of each channel (C), e.g. ``"V"``; ``""`` when the file does not say.
+        point_rate_hz: the trial's frame rate (POINT:RATE, Hz).
+        first_frame: the capture's frame number of the trial's first frame (1-based, as
+            :attr:`MarkerTrajectories.first_frame`); sample 0 is taken with that frame.
+        source: the path read ("" when built in memory).
+        metadata: read-only strings about the source (``reader``, ``processor``…).
+
+    Sample ``s`` is at ``(first_frame − 1)/point_rate + s/rate`` s of the Vicon clock (the
+    first sample of a frame is taken with the frame). Arrays are copied and read-only.
+    """
+
+    labels: tuple[str, ...]
+    rate_hz: float
+    values: FloatArray = field(repr=False)
+    units: tuple[str, ...] = ()
+    point_rate_hz: float = 0.0
+    first_frame: int = 1
+    source: str = ""
+    metadata: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        labels = tuple(str(x) for x in self.labels)
+        if len(set(labels)) != len(labels):
+            dupes = sorted({x for x in labels if labels.count(x) > 1})
+            msg = f"analog labels must be unique; duplicated: {dupes}"
+            raise ValidationError(msg)
+        rate = float(self.rate_hz)
+        if not (math.isfinite(rate) and rate > 0):
+            msg = f"rate_hz must be a finite number > 0, got {self.rate_hz!r}"
+            raise ValidationError(msg)
+        point_rate = float(self.point_rate_hz) or rate
+        spf = rate / point_rate if point_rate > 0 else math.nan
+        if not (math.isfinite(spf) and spf >= 1 and abs(spf - round(spf)) < 1e-6):
+            msg = (
+                f"the analog rate ({rate:g} Hz) must be an integer multiple of the frame rate "
+                f"({self.point_rate_hz!r} Hz)"
+            )
+            raise ValidationError(msg)
+        values = np.array(self.values, dtype=np.float64, copy=True)
+        if values.ndim != 2 or values.shape[1] != len(labels):
+            msg = (
+                "values has the wrong shape\n"
+                f"  expected: (S, {len(labels)})\n  actual:   {values.shape}"
+            )
+            raise ValidationError(msg)
+        units = tuple(str(u) for u in self.units) or ("",) * len(labels)
+        if len(units) != len(labels):
+            msg = f"{len(units)} units for {len(labels)} analog channels"
+            raise ValidationError(msg)
+        if isinstance(self.first_frame, bool) or int(self.first_frame) != self.first_frame:
+            msg = f"first_frame must be an int, got {self.first_frame!r}"
+            raise ValidationError(msg)
+        values.setflags(write=False)
+        object.__setattr__(self, "labels", labels)
+        object.__setattr__(self, "rate_hz", rate)
+        object.__setattr__(self, "point_rate_hz", point_rate)
+        object.__setattr__(self, "values", values)
+        object.__setattr__(self, "units", units)
+        object.__setattr__(self, "first_frame", int(self.first_frame))
+        object.__setattr__(self, "source", str(self.source))
+        object.__setattr__(
+            self, "metadata", MappingProxyType({str(k): str(v) for k, v in self.metadata.items()})
+        )
+
+    @property
+    def n_channels(self) -> int:
+        """Number of channels C."""
+        return len(self.labels)
+
+    @property
+    def n_samples(self) -> int:
+        """Samples per channel S."""
+        return int(self.values.shape[0])
+
+    @property
+    def samples_per_frame(self) -> int:
+        """Analog samples per trajectory frame (ANALOG:RATE / POINT:RATE)."""
+        return round(self.rate_hz / self.point_rate_hz)
+
+    @property
+    def times_s(self) -> FloatArray:
+        """(S,) Vicon-clock time (s) of every sample (see the class doc)."""
+        n = (self.first_frame - 1) * self.samples_per_frame + np.arange(self.n_samples)
+        t: FloatArray = n.astype(np.float64) / self.rate_hz
+        return t
+
+    def index(self, label: str) -> int:
+        """Column of ``label``: exact match, else a unique case-insensitive match.
+
+        Raises:
+            ValidationError: no such channel (the message lists the channels), or ambiguous.
+        """
+        if label in self.labels:
+            return self.labels.index(label)
+        hits = [i for i, x in enumerate(self.labels) if x.casefold() == label.casefold()]
+        if len(hits) == 1:
+            return hits[0]
+        where = self.source or "analog channels"
+        if hits:
+            options = [self.labels[i] for i in hits]
+            msg = f"analog channel {label!r} is ambiguous in {where}: {options}"
+            raise ValidationError(msg)
+        shown = list(self.labels[:12]) + (["..."] if self.n_channels > 12 else [])
+        msg = f"no analog channel {label!r} in {where}; channels: {shown or 'none'}"
+        raise ValidationError(msg)
+
+    def channel(self, label: str) -> FloatArray:
+        """(S,) read-only samples of one channel (see :meth:`index`)."""
+        out: FloatArray = self.values[:, self.index(label)]
+        return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -983,6 +1118,147 @@ def _trim_padding(buf: bytes, offset: int, frame_bytes: int, capacity: int) -> i
     return n
 
 
+@dataclass(frozen=True, slots=True)
+class _AnalogLayout:
+    """The ANALOG parameters of a C3D file, checked against its header."""
+
+    n_channels: int
+    samples_per_frame: int
+    rate_hz: float
+    labels: tuple[str, ...]
+    units: tuple[str, ...]
+    scale: FloatArray
+    offset: FloatArray
+    gen_scale: float
+    unsigned: bool
+
+
+def _numbered(params: Mapping[str, _Param], name: str) -> list[_Param]:
+    """``NAME``, ``NAME2``, ``NAME3``… (C3D continues lists beyond 255 entries that way)."""
+    out = []
+    for key in [name, *[f"{name}{i}" for i in range(2, 256)]]:
+        if key not in params:
+            break
+        out.append(params[key])
+    return out
+
+
+def _analog_layout(buf: bytes, layout: C3DLayout) -> _AnalogLayout:
+    """Parse and check the ANALOG group of a validated file (pure Python).
+
+    Raises:
+        ViconFileError: ANALOG:USED, RATE, SCALE, OFFSET or GEN_SCALE missing or inconsistent
+            with the header's analog words and samples per frame.
+    """
+    p = layout.path
+    w = _Walker(buf, p)
+    w.end = ">" if layout.processor == "sgi" else "<"
+    start = (layout.parameter_block - 1) * _BLOCK
+    groups, records = _walk_parameters(w, start + 4, start + layout.n_parameter_blocks * _BLOCK)
+    analog = {name: prm for gid, name, prm in records if groups.get(gid) == "ANALOG"}
+    proc = layout.processor
+
+    def fail(what: str) -> ViconFileError:
+        return ViconFileError(
+            f"{p}: malformed analog parameters: {what}; re-export the trial with its analog "
+            "channels from Vicon Nexus, or repair the ANALOG group",
+            path=p,
+        )
+
+    def numbers(name: str) -> list[float]:
+        return [v for prm in _numbered(analog, name) for v in _param_numbers(prm, proc)]
+
+    def strings(name: str) -> list[str]:
+        return [v for prm in _numbered(analog, name) for v in _param_strings(prm)]
+
+    words = layout.analog_words_per_frame
+    spf = w.u16(18)
+    used_vals = numbers("USED")
+    if "USED" in analog and analog["USED"].type_code == 2 and len(analog["USED"].data) >= 2:
+        used_vals = [float(struct.unpack_from(w.end + "H", analog["USED"].data, 0)[0])]
+    used = int(used_vals[0]) if used_vals and math.isfinite(used_vals[0]) else None
+    if words == 0:
+        if used:
+            msg = f"ANALOG:USED says {used} channels but the header stores no analog values"
+            raise fail(msg)
+        empty = np.zeros(0)
+        rates = numbers("RATE")
+        rate = rates[0] if rates and math.isfinite(rates[0]) and rates[0] > 0 else layout.rate_hz
+        return _AnalogLayout(0, max(spf, 1), rate, (), (), empty, empty, 1.0, False)
+    channels = words // spf  # _validate_bytes checked that spf divides words
+    if used is None:
+        msg = f"ANALOG:USED is missing or not a number, but the header stores {channels} channels"
+        raise fail(msg)
+    if used != channels:
+        msg = (
+            f"ANALOG:USED says {used} channels but the header stores {words} analog values per "
+            f"frame in {spf} samples, i.e. {channels} channels"
+        )
+        raise fail(msg)
+    rates = numbers("RATE")
+    expected = spf * layout.rate_hz
+    if not rates:
+        _log.info("%s: ANALOG:RATE is missing; using %g Hz from the header", p, expected)
+        rate = expected
+    else:
+        rate = rates[0]
+        if not (math.isfinite(rate) and abs(rate - expected) <= 1e-3 * expected):
+            msg = (
+                f"ANALOG:RATE is {rate:g} Hz but the header stores {spf} samples per "
+                f"{layout.rate_hz:g} Hz frame ({expected:g} Hz)"
+            )
+            raise fail(msg)
+        rate = expected  # the samples per frame define the sampling; RATE is a rounded copy
+    scale = np.array(numbers("SCALE"), dtype=np.float64)
+    if scale.size < channels or not np.all(np.isfinite(scale[:channels])):
+        msg = (
+            f"ANALOG:SCALE holds {scale.size} values"
+            + (" (some not finite)" if scale.size >= channels else "")
+            + f" for {channels} channels"
+        )
+        raise fail(msg)
+    offset = np.array(numbers("OFFSET"), dtype=np.float64)
+    if offset.size < channels:
+        msg = f"ANALOG:OFFSET holds {offset.size} values for {channels} channels"
+        raise fail(msg)
+    gen = numbers("GEN_SCALE")
+    if not gen or not math.isfinite(gen[0]) or gen[0] == 0.0:
+        what = "missing" if not gen else f"{gen[0]}, not a finite non-zero number"
+        msg = f"ANALOG:GEN_SCALE is {what}"
+        raise fail(msg)
+    fmt = strings("FORMAT")
+    unsigned = bool(fmt) and fmt[0].upper().startswith("UNSIGNED")
+    if unsigned:
+        offset = np.mod(offset, 65536.0)
+    labels = strings("LABELS")[:channels]
+    if len(labels) < channels:
+        _log.warning(
+            "%s: ANALOG:LABELS names %d of %d channels; the others are called channel<N>",
+            p,
+            len(labels),
+            channels,
+        )
+    labels += [f"channel{i + 1}" for i in range(len(labels), channels)]
+    seen: dict[str, int] = {}
+    unique = []
+    for i, lab in enumerate(labels):
+        name = lab or f"channel{i + 1}"
+        seen[name] = seen.get(name, 0) + 1
+        unique.append(name if seen[name] == 1 else f"{name}#{seen[name]}")
+    units = (strings("UNITS") + [""] * channels)[:channels]
+    return _AnalogLayout(
+        n_channels=channels,
+        samples_per_frame=spf,
+        rate_hz=float(rate),
+        labels=tuple(unique),
+        units=tuple(units),
+        scale=scale[:channels],
+        offset=offset[:channels],
+        gen_scale=float(gen[0]),
+        unsigned=unsigned,
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # C3D data decoding (backends) and isolation
 # --------------------------------------------------------------------------------------------
@@ -1015,6 +1291,33 @@ def _decode_point_block(layout: C3DLayout, buf: bytes) -> tuple[FloatArray, Floa
         word = rec_i[..., 3]
     residual = np.where(word < 0, -1.0, (word & 0xFF) * abs(layout.scale)).astype(np.float64)
     return xyz, residual
+
+
+def _decode_analog_block(layout: C3DLayout, alay: _AnalogLayout, buf: bytes) -> FloatArray:
+    """The stored analog values with numpy: (F·samples per frame, C), before any scaling."""
+    f, n, c, spf = layout.n_frames, layout.n_points, alay.n_channels, alay.samples_per_frame
+    start, fb = layout.data_offset, layout.frame_bytes
+    raw = buf[start : start + f * fb]
+    end = ">" if layout.processor == "sgi" else "<"
+    if layout.is_float:
+        if layout.processor == "dec":
+            vals = _dec_to_ieee(np.frombuffer(raw, dtype=np.uint8)).astype(np.float64)
+        else:
+            vals = np.frombuffer(raw, dtype=end + "f4").astype(np.float64)
+        words = vals.reshape(f, fb // 4)
+    else:
+        kind = "u2" if alay.unsigned else "i2"
+        words = np.frombuffer(raw, dtype=end + kind).reshape(f, fb // 2).astype(np.float64)
+    out: FloatArray = words[:, 4 * n : 4 * n + spf * c].reshape(f * spf, c)
+    return out
+
+
+def _read_analogs_ezc3d(path: str) -> tuple[FloatArray, str]:
+    import ezc3d
+
+    c = ezc3d.c3d(path)
+    a = np.asarray(c["data"]["analogs"], dtype=np.float64)  # (1, C, S), already scaled
+    return np.ascontiguousarray(a[0].T), f"ezc3d {ezc3d.__version__}"
 
 
 def _read_points_ezc3d(path: str) -> tuple[FloatArray, FloatArray, str]:
@@ -1063,11 +1366,18 @@ _BACKENDS: dict[str, _Backend] = {
 }
 
 
-def _child_entry(processor: str, path: str, out_npz: str) -> int:  # pragma: no cover - child
-    """Entry point of the isolated child: decode ``path``, save arrays to ``out_npz``."""
+def _child_entry(
+    processor: str, path: str, out_npz: str, kind: str = "points"
+) -> int:  # pragma: no cover - child
+    """Entry point of the isolated child: decode ``path`` (its points, or with ``kind`` =
+    ``"analogs"`` its analog channels), save arrays to ``out_npz``."""
     try:
-        xyz, residual, reader = _BACKENDS[processor](path)
-        np.savez(out_npz, xyz=xyz, residual=residual, reader=np.array(reader))
+        if kind == "analogs":
+            analogs, reader = _read_analogs_ezc3d(path)
+            np.savez(out_npz, analogs=analogs, reader=np.array(reader))
+        else:
+            xyz, residual, reader = _BACKENDS[processor](path)
+            np.savez(out_npz, xyz=xyz, residual=residual, reader=np.array(reader))
     except BaseException as err:
         sys.stderr.write(f"\n{_CHILD_ERROR_TAG}{type(err).__name__}: {err}\n")
         return _CHILD_ERROR_EXIT
@@ -1077,22 +1387,34 @@ def _child_entry(processor: str, path: str, out_npz: str) -> int:  # pragma: no 
 _CHILD_ERROR_TAG = "mocaprig-c3d-error: "
 _CHILD_ERROR_EXIT = 3
 _CHILD_CODE = (
-    "import sys; from calib.vicon import _child_entry; "
-    "sys.exit(_child_entry(sys.argv[1], sys.argv[2], sys.argv[3]))"
+    "import sys; from calib.vicon import _child_entry; sys.exit(_child_entry(*sys.argv[1:]))"
 )
 
 
 def _read_isolated(
     processor: Processor, path: str, *, timeout_s: float
 ) -> tuple[FloatArray, FloatArray, str]:
-    """Run the backend in a child interpreter; a crash, hang or error becomes a ViconFileError.
+    """Decode the points in a child interpreter (:func:`_run_isolated`)."""
+    data = _run_isolated("points", processor, path, timeout_s=timeout_s)
+    return (
+        np.asarray(data["xyz"], dtype=np.float64),
+        np.asarray(data["residual"], dtype=np.float64),
+        str(data["reader"]),
+    )
+
+
+def _run_isolated(
+    kind: Literal["points", "analogs"], processor: Processor, path: str, *, timeout_s: float
+) -> dict[str, npt.NDArray[np.generic]]:
+    """Run a decoder in a child interpreter; a crash, hang or error becomes a ViconFileError.
 
     A fresh ``python -c`` child (not ``multiprocessing``): spawn/forkserver children re-import the
     caller's ``__main__``, which fails for stdin/REPL callers and re-runs unguarded scripts.
+    Returns the arrays the child saved.
     """
     with tempfile.TemporaryDirectory(prefix="mocaprig-c3d-") as tmp:
-        out_npz = str(Path(tmp) / "points.npz")
-        cmd = [sys.executable, "-c", _CHILD_CODE, processor, path, out_npz]
+        out_npz = str(Path(tmp) / f"{kind}.npz")
+        cmd = [sys.executable, "-c", _CHILD_CODE, processor, path, out_npz, kind]
         # The child must import this very package, even when the caller runs from a source tree.
         env = dict(os.environ)
         root = str(Path(__file__).resolve().parents[1])
@@ -1132,10 +1454,7 @@ def _read_isolated(
             )
             raise ViconFileError(msg, path=path)
         with np.load(out_npz, allow_pickle=False) as data:
-            xyz = np.asarray(data["xyz"], dtype=np.float64)
-            residual = np.asarray(data["residual"], dtype=np.float64)
-            reader = str(data["reader"])
-    return xyz, residual, reader
+            return {key: np.asarray(data[key]) for key in data.files}
 
 
 def read_c3d(
@@ -1245,6 +1564,86 @@ def read_c3d(
     )
     _log.debug("%s: read %s in %.3f s", p, traj, time.perf_counter() - t0)
     return traj
+
+
+def read_c3d_analogs(path: str | os.PathLike[str], *, isolate: bool = True) -> AnalogChannels:
+    """Read the analog channels of a C3D file, in physical units (see the module docstring).
+
+    Args:
+        path: the ``.c3d`` file.
+        isolate: decode with ezc3d in a fresh child interpreter (as :func:`read_c3d`; default).
+
+    Returns:
+        The channels (none when the file has no analog data); ``metadata`` holds ``reader``,
+        ``processor`` and the raw ``gen_scale``.
+
+    Raises:
+        ViconFileError: the file is malformed or truncated, its ANALOG parameters are missing or
+            disagree with the header (USED, RATE, SCALE, OFFSET, GEN_SCALE), or the decoder
+            crashed or rejected it.
+    """
+    p = str(path)
+    try:
+        buf = Path(p).read_bytes()
+    except OSError as err:
+        msg = f"{p}: cannot read the file ({err.strerror or err}); check the path and permissions"
+        raise ViconFileError(msg, path=p) from err
+    layout = _validate_bytes(buf, p)
+    alay = _analog_layout(buf, layout)
+    n_samples = layout.n_frames * alay.samples_per_frame
+    k = alay.scale * alay.gen_scale
+    if alay.n_channels == 0 or n_samples == 0:
+        values = np.zeros((n_samples, alay.n_channels))
+        reader = "none (no analog data)"
+    else:
+        raw = _decode_analog_block(layout, alay, buf)
+        values = (raw - alay.offset) * k
+        reader = "numpy"
+        if layout.is_float and layout.processor in ("intel", "dec"):
+            if isolate:
+                timeout = _ISOLATE_TIMEOUT_BASE_S + _ISOLATE_TIMEOUT_PER_MB_S * len(buf) / 1e6
+                data = _run_isolated("analogs", layout.processor, p, timeout_s=timeout)
+                ez = np.asarray(data["analogs"], dtype=np.float64)
+                ez_reader = str(data["reader"])
+            else:
+                try:
+                    ez, ez_reader = _read_analogs_ezc3d(p)
+                except Exception as err:
+                    msg = f"{p}: the C3D reader rejected the file: {err}; re-export it"
+                    raise ViconFileError(msg, path=p) from err
+            if ez.shape == values.shape:
+                # ezc3d applies |OFFSET|; c3d.org's OFFSET is signed.
+                values = ez + (np.abs(alay.offset) - alay.offset) * k
+                reader = ez_reader
+            elif ez.ndim == 2 and ez.shape[1] == alay.n_channels and ez.shape[0] < n_samples:
+                _log.info(
+                    "%s: %s returned %d of %d analog samples; decoded with numpy",
+                    p,
+                    ez_reader,
+                    ez.shape[0],
+                    n_samples,
+                )
+            else:
+                msg = (
+                    f"{p}: the C3D reader returned analogs of shape {ez.shape} but the "
+                    f"parameters declare {values.shape}; the file is inconsistent; re-export it"
+                )
+                raise ViconFileError(msg, path=p)
+    return AnalogChannels(
+        labels=alay.labels,
+        rate_hz=alay.rate_hz,
+        values=values,
+        units=alay.units,
+        point_rate_hz=layout.rate_hz,
+        first_frame=layout.first_frame,
+        source=p,
+        metadata={
+            "reader": reader,
+            "processor": layout.processor,
+            "gen_scale": repr(alay.gen_scale),
+            "format": "unsigned" if alay.unsigned else "signed",
+        },
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -1500,25 +1899,43 @@ def write_c3d(
     *,
     unit: Literal["mm", "m"] = "mm",
     overwrite: bool = False,
+    analogs: AnalogChannels | None = None,
 ) -> Path:
-    """Write trajectories to an Intel, float-format C3D file with ezc3d.
+    """Write trajectories (and optionally analog channels) to an Intel, float-format C3D file
+    with ezc3d.
 
     The file has POINT:UNITS ``unit``, POINT:RATE, POINT:LABELS, POINT:SCALE = −0.01 mm (residual
     resolution 0.01 mm, maximum 2.55 mm; larger residuals are clipped), gaps as (0, 0, 0) with
     residual −1, TRIAL:ACTUAL_START/END_FIELD and the header first frame from ``first_frame``, and
-    MANUFACTURER:COMPANY/SOFTWARE = ``mocaprig``. The file is written beside ``path`` and moved into
-    place, so a failed write leaves nothing behind.
+    MANUFACTURER:COMPANY/SOFTWARE = ``mocaprig``. With ``analogs``: ANALOG:RATE, LABELS, UNITS,
+    SCALE 1, OFFSET 0, GEN_SCALE 1 and the samples (float32). The file is written beside
+    ``path`` and moved into place, so a failed write leaves nothing behind.
 
     Returns:
         The path written.
 
     Raises:
         ViconFileError: ``path`` exists and ``overwrite`` is False, or the write failed.
-        ValidationError: ``unit`` is not ``"mm"`` or ``"m"``.
+        ValidationError: ``unit`` is not ``"mm"`` or ``"m"``; ``analogs`` do not fit the
+            trajectories (frame rate, first frame, samples per frame × frames).
     """
     if unit not in ("mm", "m"):
         msg = f"unit must be 'mm' or 'm', got {unit!r}"
         raise ValidationError(msg)
+    if analogs is not None and analogs.n_channels:
+        a, tr = analogs, trajectories
+        if (
+            a.point_rate_hz != tr.rate_hz
+            or a.first_frame != tr.first_frame
+            or a.n_samples != tr.n_frames * a.samples_per_frame
+        ):
+            msg = (
+                f"analogs do not fit the trajectories: {a.n_samples} samples at {a.rate_hz:g} Hz "
+                f"for frames from {a.first_frame} at {a.point_rate_hz:g} Hz, but the "
+                f"trajectories have {tr.n_frames} frames from {tr.first_frame} at "
+                f"{tr.rate_hz:g} Hz (need {tr.n_frames * a.samples_per_frame} samples)"
+            )
+            raise ValidationError(msg)
     out = Path(path)
     if out.exists() and not overwrite:
         msg = f"{out}: the file exists; pass overwrite=True to replace it, or choose another path"
@@ -1554,6 +1971,13 @@ def write_c3d(
     c["data"]["points"] = pts
     c["data"]["meta_points"] = {"residuals": res_file.T[None, :, :]}
     c["header"]["points"]["first_frame"] = max(t.first_frame - 1, 0)
+    if analogs is not None and analogs.n_channels:
+        c["parameters"]["ANALOG"]["RATE"]["value"] = [analogs.rate_hz]
+        c["parameters"]["ANALOG"]["LABELS"]["value"] = tuple(analogs.labels)
+        c["parameters"]["ANALOG"]["UNITS"]["value"] = tuple(analogs.units)
+        c["parameters"]["ANALOG"]["SCALE"]["value"] = [1.0] * analogs.n_channels
+        c["parameters"]["ANALOG"]["GEN_SCALE"]["value"] = [1.0]
+        c["data"]["analogs"] = np.ascontiguousarray(analogs.values.T[None, :, :])
     last = t.first_frame + t.n_frames - 1
     c.add_parameter(
         "TRIAL",
@@ -1584,5 +2008,12 @@ def write_c3d(
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
-    _log.info("wrote %s (%d markers x %d frames, %s)", out, t.n_markers, t.n_frames, unit)
+    _log.info(
+        "wrote %s (%d markers x %d frames, %s; %d analog channels)",
+        out,
+        t.n_markers,
+        t.n_frames,
+        unit,
+        0 if analogs is None else analogs.n_channels,
+    )
     return out

@@ -16,6 +16,13 @@
    the cameras whose frames pair with one another's (hardware sync, checked, not assumed) share
    one line through all their stretches (offset, drift) composed with each camera's tie to the
    pivot camera (:func:`_pooled_clocks`); optionally refined by ``calib.time_align``.
+   With a **sync channel** in the Vicon trial (``CalibrationOptions.sync_channel``, default
+   ``D415_SYNC``: the sync box's toggle output on a Vicon analog input, docs/wiring.md §7),
+   the master's clock is instead the line through the channel's edges paired with its frames
+   (``calib.time_align.clock_from_sync_edges``, the video clock as the pairing prior), and every
+   camera tied to it by frame counters in the pool gets it through its tie plus its trigger
+   delay (:func:`_sync_clocks`); without the channel, or when it is unusable, the video clocks
+   stay and a note says why.
 5. **Final bundle adjustment** over all frames read, the Vicon markers interpolated at each
    frame's mapped time (fast markers and partly occluded blobs left out); clock and pose are
    iterated twice.
@@ -52,7 +59,7 @@ import numpy.typing as npt
 
 from acquire import __version__
 from acquire.check import check_positive
-from acquire.errors import CalibrationError, RecordingError
+from acquire.errors import CalibrationError, RecordingError, ValidationError
 from acquire.recording import Recording
 from acquire.recording_format import topic
 from calib.calibration import Calibration, CameraCalibration, ClockMapping, calibration_bytes
@@ -63,7 +70,7 @@ from calib.registration import (
     register_camera,
     rotation_error_deg,
 )
-from calib.time_align import ClapDetection
+from calib.time_align import ClapDetection, SyncEdges
 from calib.vicon import MarkerTrajectories
 
 __all__ = [
@@ -127,6 +134,14 @@ class CalibrationOptions:
         sync_pulse_us: Width of the D415 master's sync pulse (µs): a DAVIS reporting whole
             pulses (special type 4, stamped at the trailing edge) is moved back by it to the
             rising edge (the exposure start); rising-edge events (type 2) need no correction.
+        sync_channel: Label of the Vicon analog channel carrying the D415 master's pulses (the
+            sync box's toggle output: one edge per pulse, docs/wiring.md §7); matched exactly,
+            else ignoring case. None: do not look for one (video clocks only).
+        sync_latency_us: The wiring's delay from the master's pulse to the channel's edge (µs):
+            the sync box's interrupt latency, ≈ 2 µs (assumed; measure it with a scope).
+        slave_trigger_delay_us: A D415 slave's exposure start after the pulse (µs), for slaves
+            mapped through the sync channel. Undocumented by Intel (realsense-d415.md §2.2);
+            100 µs is the mock's assumption: measure it (LED flash test) for a real rig.
     """
 
     head_window_s: float = 2.2
@@ -144,10 +159,17 @@ class CalibrationOptions:
     seed: int = 0
     unit: str | None = None
     sync_pulse_us: float = 50.0
+    sync_channel: str | None = "D415_SYNC"
+    sync_latency_us: float = 2.0
+    slave_trigger_delay_us: float = 100.0
 
     def __post_init__(self) -> None:
         check_positive(self.head_window_s, name="head_window_s")
         check_positive(self.sync_pulse_us, name="sync_pulse_us")
+        for name in ("sync_latency_us", "slave_trigger_delay_us"):
+            if not math.isfinite(getattr(self, name)):
+                msg = f"{name} must be a finite number of µs, got {getattr(self, name)!r}"
+                raise ValidationError(msg)
         check_positive(self.static_tolerance_m, name="static_tolerance_m")
         check_positive(self.static_tolerance_px, name="static_tolerance_px")
         check_positive(self.max_rms_px, name="max_rms_px")
@@ -737,6 +759,224 @@ def _davis_clock(
     )
 
 
+@dataclass(frozen=True, slots=True)
+class _SyncInputs:
+    """The Vicon sync channel's edges and the D415 master they come from (or why not)."""
+
+    edges: SyncEdges | None
+    master: str | None = None
+    master_frames_ns: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    frame_delay_ns: int = 0
+    delays_ns: Mapping[str, float] = field(default_factory=dict)
+    note: str = ""
+
+
+def _sync_channel_edges(vicon_path: Path, opt: CalibrationOptions) -> tuple[SyncEdges | None, str]:
+    """The edges of the Vicon trial's sync channel (Vicon clock), or ``None`` and a note saying
+    why not (option off, no analog section or no such channel, unreadable or flat channel)."""
+    from calib.time_align import analog_times_ns, find_sync_edges
+    from calib.vicon import ViconFileError, read_c3d_analogs
+
+    label = opt.sync_channel
+    fallback = "the D415 clocks come from the video"
+    if label is None:
+        return None, f"clock: sync channel not used (option); {fallback}"
+    if vicon_path.suffix.lower() == ".csv":
+        return None, (
+            f"clock: a Nexus CSV export holds no analog channel (export the trial as C3D to use "
+            f"the sync channel {label!r}); {fallback}"
+        )
+    try:
+        analogs = read_c3d_analogs(vicon_path)
+    except ViconFileError as err:
+        return None, f"clock: no sync channel: {err}; {fallback}"
+    try:
+        values = analogs.channel(label)
+    except ValidationError as err:
+        return None, (
+            f"clock: {err}; {fallback} (drift good to ~10 ppm only: record the sync box's "
+            "toggle output on a Vicon analog input, docs/wiring.md §7)"
+        )
+    name = analogs.labels[analogs.index(label)]
+    try:
+        return find_sync_edges(analog_times_ns(analogs), values, channel=name), ""
+    except CalibrationError as err:
+        return None, f"clock: {err}; {fallback}"
+
+
+def _sync_channel_inputs(
+    vicon_path: Path,
+    rec: Recording,
+    cams: Sequence[_Cam],
+    frames_ns: Mapping[str, I64],
+    opt: CalibrationOptions,
+) -> _SyncInputs:
+    """The sync channel's edges (:func:`_sync_channel_edges`), the master's frame stamps (those
+    of the frames read for the calibration: the windows spread over the session pin the line
+    to well under a µs and 0.1 ppm, and reading every ``frame_info`` would decompress the
+    whole recording), its frame delay (half its exposure: pulse at the exposure start, stamp
+    mid-exposure) and, per other camera, its exposure's delay after the master's
+    (``slave_trigger_delay_us`` plus half the exposure difference). A missing or unusable
+    channel gives ``edges=None`` and a note saying why."""
+    fallback = "the D415 clocks come from the video"
+    edges, note = _sync_channel_edges(vicon_path, opt)
+    if edges is None:
+        return _SyncInputs(None, note=note)
+    name = edges.channel
+    master = next((c for c in cams if c.sync_mode == 1), None)
+    if master is None:
+        return _SyncInputs(
+            None,
+            note=(
+                f"clock: sync channel {name!r} found but no calibrated D415 was recorded as the "
+                f"sync master (sync_mode 1); {fallback}"
+            ),
+        )
+    meta = rec.metadata()
+
+    def exposure_ns(c: _Cam) -> float | None:
+        try:
+            return float(meta[f"device/{c.name}"]["options.exposure_us"]) * 1e3
+        except (KeyError, ValueError):
+            return None
+
+    exp_m = exposure_ns(master)
+    if exp_m is None:
+        return _SyncInputs(
+            None,
+            note=f"clock: {master.name}'s metadata has no options.exposure_us; {fallback}",
+        )
+    delays = {}
+    for c in cams:
+        if c is master:
+            continue
+        exp_c = exposure_ns(c)
+        delays[c.name] = opt.slave_trigger_delay_us * 1e3 + 0.5 * ((exp_c or exp_m) - exp_m)
+    return _SyncInputs(
+        edges,
+        master.name,
+        np.unique(np.asarray(frames_ns[master.name], dtype=np.int64)),
+        round(0.5 * exp_m),
+        delays,
+    )
+
+
+#: Whole edge periods tried either side of a sync-channel mapping (see :func:`_sync_clocks`).
+_SYNC_PERIOD_SHIFTS: Final = 3
+
+
+def _sync_clocks(
+    sync: _SyncInputs,
+    mappings: Mapping[str, ClockMapping],
+    ties: Mapping[str, _Tie],
+    opt: CalibrationOptions,
+    score: Callable[[str, ClockMapping], float] | None = None,
+) -> tuple[dict[str, ClockMapping], list[str]]:
+    """The D415 clocks from the sync channel: the master's by its edges (the video mapping as
+    the pairing prior), every camera tied to the pool's pivot (``ties``, from
+    :func:`_pooled_clocks`) through its tie, the master's tie inverted and the master's mapping,
+    plus its exposure's delay after the master's. Cameras without a tie keep ``mappings``
+    (video), and so does every camera when the master's fit fails; notes say so.
+
+    The edges fix each clock only up to whole periods (a periodic train pairs as well one edge
+    over): when the video prior is off by more than a quarter period (on the 30 s seed-11
+    session the master's pooled video clock was 41 ms off), or a tie's counter shift is one
+    frame off, the mapping is a whole period out. So each camera's mapping is moved by the
+    number of edge periods (±:data:`_SYNC_PERIOD_SHIFTS`) whose ``score`` (the reprojection cost
+    of its frames) is lowest; no move on a tie."""
+    from calib.time_align import clock_from_sync_edges
+
+    out = dict(mappings)
+    m, edges = sync.master, sync.edges
+    if m is None or edges is None or m not in mappings:
+        return out, []
+    period = float(np.median(np.diff(np.sort(edges.t_ns)))) if edges.count > 1 else 0.0
+    moved: list[str] = []
+
+    def best_period(name: str, mapping: ClockMapping) -> ClockMapping:
+        if score is None or not period > 0:
+            return mapping
+        cands = [
+            dataclasses.replace(mapping, offset_ns=mapping.offset_ns + round(k * period))
+            for k in range(-_SYNC_PERIOD_SHIFTS, _SYNC_PERIOD_SHIFTS + 1)
+        ]
+        costs = [score(name, c) for c in cands]
+        k = int(np.argmin(costs))
+        if costs[k] < 0.99 * costs[_SYNC_PERIOD_SHIFTS]:
+            shift = k - _SYNC_PERIOD_SHIFTS
+            moved.append(f"{name} {shift:+d}")
+            _log.info("%s: sync clock moved by %+d edge periods (reprojection cost)", name, shift)
+            return cands[k]
+        return mapping
+
+    try:
+        mmap = clock_from_sync_edges(
+            m,
+            edges,
+            sync.master_frames_ns,
+            prior=mappings[m],
+            frame_delay_ns=sync.frame_delay_ns,
+            edge_delay_ns=round(opt.sync_latency_us * 1e3),
+        )
+    except CalibrationError as err:
+        _log.warning("%s", err)
+        return out, [f"clock: {err}; the D415 clocks come from the video"]
+    mmap = best_period(m, mmap)
+    out[m] = mmap
+    done = [m]
+    tm = ties.get(m)
+    if tm is not None and len(ties) >= 2:
+        # The pivot's clock → the master's (its tie inverted) → Vicon (the sync line).
+        anchor_p = mmap.anchor_ns + tm.a_ns + tm.s * (mmap.anchor_ns - tm.centre_ns)
+        pivot_map = ClockMapping(
+            device="pivot",
+            reference=mmap.reference,
+            offset_ns=round(mmap.anchor_ns + mmap.offset_ns - anchor_p),
+            drift_ppm=((1.0 + mmap.drift_ppm * 1e-6) / (1.0 + tm.s) - 1.0) * 1e6,
+            anchor_ns=round(anchor_p),
+            drift_sigma_ppm=mmap.drift_sigma_ppm,
+        )
+        for c, tie in ties.items():
+            if c == m or c not in out:
+                continue
+            mc = _through_tie(
+                c,
+                tie,
+                pivot_map,
+                delay_ns=sync.delays_ns.get(c, 0.0),
+                method=f"{mmap.method} via {m} (frame tie)",
+            )
+            sigma = math.hypot(
+                mmap.offset_sigma_ns,
+                tie.rms_ns / math.sqrt(max(tie.pairs, 1)),
+                tm.rms_ns / math.sqrt(max(tm.pairs, 1)),
+            )
+            out[c] = best_period(c, dataclasses.replace(mc, offset_sigma_ns=sigma))
+            done.append(c)
+    notes = [
+        f"clock: {m} from the Vicon sync channel {edges.channel!r} ({edges.count} edges, "
+        f"τ {edges.tau_ns / 1e3:.0f} µs; ±{mmap.offset_sigma_ns / 1e3:.1f} µs, "
+        f"±{mmap.drift_sigma_ppm:.3f} ppm)"
+        + (f", {len(done) - 1} more D415 through their frame ties" if len(done) > 1 else "")
+    ]
+    if moved:
+        notes.append(
+            "clock: whole edge periods chosen by the reprojection cost (the video prior or a "
+            f"frame tie was a period out): {', '.join(moved)}"
+        )
+    for c in mappings:
+        if c not in done:
+            notes.append(f"{c}: video clock: it is not tied to {m}'s frames")
+    # Cross-check against the video clocks (a wrong trigger delay or tie shows here).
+    diffs = []
+    for c in done:
+        t = np.array([out[c].anchor_ns], dtype=np.int64)
+        d_us = float(out[c].to_reference_ns(t)[0] - mappings[c].to_reference_ns(t)[0]) / 1e3
+        diffs.append(f"{c} {d_us:+.0f} µs / {out[c].drift_ppm - mappings[c].drift_ppm:+.1f} ppm")
+    notes.append("clock: sync channel minus video clock: " + "; ".join(diffs))
+    return out, notes
+
+
 def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     out: list[tuple[int, int]] = []
     for lo, hi in sorted(windows):
@@ -889,6 +1129,13 @@ def calibrate_vicon(
             for c in cams:
                 frames_all[c.name].extend(got[c.name])
         davis_inputs = _davis_pulse_inputs(rec, cams, opt.sync_pulse_us)
+        sync = _sync_channel_inputs(
+            Path(vicon_c3d),
+            rec,
+            cams,
+            {c: np.array([f.t_dev_ns for f in fr], dtype=np.int64) for c, fr in frames_all.items()},
+            opt,
+        )
         tick()
     # Clocks and final poses, iterated twice: per-camera stretch offsets, then one pooled clock
     # line for the hardware-synchronised cameras, then each camera's bundle adjustment.
@@ -917,15 +1164,19 @@ def calibrate_vicon(
             c.name: np.array([f.frame_counter for f in frames_all[c.name]], dtype=np.int64)
             for c in cams
         }
+        ties: dict[str, _Tie] = {}
         mappings, pool_notes = _pooled_clocks(
             {c.name: (stamps[c.name], counters[c.name]) for c in cams},
             clock_fits,
             own,
             shift_cost,
             {c.name: c.sync_mode for c in cams},
+            ties_out=ties,
         )
+        video = mappings
+        mappings, sync_notes = _sync_clocks(sync, video, ties, opt, shift_cost)
         for cam in cams:
-            if opt.clock_method == "claps+speed":
+            if opt.clock_method == "claps+speed" and mappings[cam.name] is video[cam.name]:
                 mappings[cam.name] = _time_align_clock(
                     cam.name, frames_all[cam.name], vicon_claps, traj, mappings[cam.name]
                 )
@@ -957,6 +1208,7 @@ def calibrate_vicon(
                 coarse_rms_m=registrations[cam.name].coarse_rms_m,
             )  # fmt: skip
     notes.extend(pool_notes)
+    notes.extend([sync.note] if sync.note else sync_notes)
     clocks.extend(mappings[c.name] for c in cams)
     tick()
     refused = tuple(
@@ -1173,6 +1425,7 @@ def _pooled_clocks(
     own: Mapping[str, ClockMapping],
     score: Callable[[str, ClockMapping], float] | None = None,
     sync_modes: Mapping[str, int | None] | None = None,
+    ties_out: dict[str, _Tie] | None = None,
 ) -> tuple[dict[str, ClockMapping], list[str]]:
     """One Vicon clock line through the stretch offsets of every hardware-synchronised camera.
 
@@ -1201,6 +1454,8 @@ def _pooled_clocks(
             its own crystal, and a free-running camera at the same frame rate can pair with
             the master's frames on a line (its phase slides linearly), so the frame times
             alone cannot always tell it.
+        ties_out: Filled with each pooled camera's tie to the pivot (the pivot's own is the
+            identity), for the sync-channel clocks (:func:`_sync_clocks`).
 
     Returns:
         ``(mapping per camera, notes)``.
@@ -1266,6 +1521,8 @@ def _pooled_clocks(
             n, pivot, tie.counter_shift, tie.pairs, tie.rms_ns / 1e3, tie.s * 1e6,
         )  # fmt: skip
         rel[n] = tie
+    if ties_out is not None and len(rel) >= 2:
+        ties_out.update(rel)
     if len(rel) < 2:
         return out, notes
     t_all, d_all, s_all, cam_all = [], [], [], []
@@ -1301,6 +1558,10 @@ def _pooled_clocks(
 #: Fewest inlier stretches for a camera's own constant delay in the pooled clock; with fewer
 #: it gets none (0 ± the pooled line's σ).
 _MIN_DELAY_STRETCHES: Final = 3
+#: Largest per-camera constant (trigger delay) of the pooled clock, and the prior it is shrunk
+#: with (ns). A D415 slave exposes a fixed delay after the pulse (the mock: 100 µs).
+_MAX_DELAY_NS: Final = 1_000_000.0
+_DELAY_PRIOR_NS: Final = 300_000.0
 
 
 def _shared_line_fit(
@@ -1320,14 +1581,19 @@ def _shared_line_fit(
     res = delta_ns - (pooled.to_reference_ns(t_ns.round()) - t_ns.round())
     z = res * np.sqrt(w)
     scale = max(1.4826 * float(np.median(np.abs(z))), 1.0)
-    inlier = np.abs(z) <= _STRETCH_REJECT_SIGMA * scale
+    # A per-camera constant is a trigger delay: physically ≤ _MAX_DELAY_NS. Only stretches that
+    # close to the line say anything about it (wider ones are fits on a neighbouring frame or a
+    # bad stretch), and a weak estimate is shrunk towards 0 (Gaussian prior _DELAY_PRIOR_NS).
+    inlier = (np.abs(z) <= _STRETCH_REJECT_SIGMA * scale) & (np.abs(res) <= _MAX_DELAY_NS)
     delays, sig = [], []
     for c in range(n_cams):
         r = res[inlier & (cam == c)]
         if len(r) >= _MIN_DELAY_STRETCHES:
             med = float(np.median(r))
-            delays.append(med)
-            sig.append(1.2533 * 1.4826 * float(np.median(np.abs(r - med))) / math.sqrt(len(r)))
+            se = 1.2533 * 1.4826 * float(np.median(np.abs(r - med))) / math.sqrt(len(r))
+            k = _DELAY_PRIOR_NS**2 / (_DELAY_PRIOR_NS**2 + se**2)
+            delays.append(k * med)
+            sig.append(math.sqrt(k) * se)
         else:
             delays.append(0.0)
             sig.append(0.0)

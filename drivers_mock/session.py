@@ -4,7 +4,8 @@
 
     <out>/truth/truth.npz, scenario.json, vicon_truth.npz    (drivers_mock.truth)
     <out>/truth/d415_captures.npz                            every mock D415 capture (truth)
-    <out>/vicon/session.c3d                                  float C3D, mm, 120 Hz
+    <out>/truth/vicon_sync.npz                               the sync channel's switch instants
+    <out>/vicon/session.c3d                                  float C3D, mm, 120 Hz (+ D415_SYNC)
     <out>/vicon/session.csv                                  Nexus Trajectories CSV, same values
     <out>/session.mcap                                       the rig's recording (MCAP)
 
@@ -15,7 +16,9 @@ pseudo-terminal) and the recorder of ``mocaprig record``, from the mock devices 
 world. The mocks are paced "asap" (simulated time, deterministic): the recording takes as long as
 the simulation needs, the sources use the recorder's back-pressure (``put_wait``) and nothing is
 dropped. The mock D415 master's pulse train is the one the DAVIS sees on its trigger input and
-the sync box counts (``MockD415.pulse_at_or_after``).
+the sync box counts (``MockD415.pulse_at_or_after``), and, with D415s recorded, the one whose
+edges the Vicon samples on its analog channel ``D415_SYNC`` (the C3D is then written after the
+recording, when the master's pulses are known; ``drivers_mock.vicon.simulate_sync_channel``).
 
 Cost on the 2-core machine (``docs/simulated-world.md``): ~50 ms CPU per D415 frameset at
 848×480 (4 cameras: ~6 s per simulated second), ~2 s per simulated second for the DAVIS with its
@@ -38,7 +41,13 @@ from acquire.errors import RecordingError, ValidationError
 from drivers_mock.noise import NoiseSettings
 from drivers_mock.scenario import Scenario, build_scenario
 from drivers_mock.truth import write_truth, write_vicon_truth
-from drivers_mock.vicon import simulate_vicon, write_c3d, write_nexus_csv
+from drivers_mock.vicon import (
+    AnalogCapture,
+    simulate_sync_channel,
+    simulate_vicon,
+    write_c3d,
+    write_nexus_csv,
+)
 
 __all__ = [
     "DEVICES",
@@ -73,6 +82,9 @@ class SessionRecording:
         davis_driver_drops: Packets the DAVIS driver dropped (0 expected).
         bytes: File size (bytes).
         elapsed_s: Wall time the recording took (s).
+        sync_pulses_ns: Every sync pulse the D415 master emitted while it streamed (session
+            ns), the train the slaves, the DAVIS, the sync box and the Vicon's sync channel
+            see; empty without D415s.
     """
 
     path: Path
@@ -84,6 +96,7 @@ class SessionRecording:
     davis_driver_drops: int
     bytes: int
     elapsed_s: float
+    sync_pulses_ns: tuple[int, ...] = field(default=(), repr=False)
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready summary."""
@@ -228,7 +241,10 @@ def simulate_session(
     )
     capture = simulate_vicon(world, progress=stage("vicon"))
     write_vicon_truth(capture, out)
-    c3d_path = write_c3d(capture, out / "vicon" / "session.c3d", subject=world.rig.vicon.subject)
+    c3d_path = out / "vicon" / "session.c3d"
+    if "d415" not in devices:
+        # With D415s the C3D gets their sync channel: written once their pulses are known.
+        write_c3d(capture, c3d_path, subject=world.rig.vicon.subject)
     csv_path = write_nexus_csv(capture, out / "vicon" / "session.csv")
     recording = None
     if devices:
@@ -247,6 +263,17 @@ def simulate_session(
             truth_dir=truth_dir,
             progress=stage("record"),
         )
+        if recording.sync_pulses_ns:
+            sync = simulate_sync_channel(
+                capture,
+                world.clocks["vicon"],
+                np.asarray(recording.sync_pulses_ns, dtype=np.int64),
+                rng=world.rng("vicon-sync"),
+            )
+            _write_sync_truth(truth_dir / "vicon_sync.npz", sync, recording.sync_pulses_ns)
+            write_c3d(capture, c3d_path, subject=world.rig.vicon.subject, analogs=sync)
+        elif "d415" in devices:  # pragma: no cover - a recorded master always pulses
+            write_c3d(capture, c3d_path, subject=world.rig.vicon.subject)
     elapsed = time.monotonic() - t0
     _log.info("simulated %.2f s session (seed %d) into %s in %.1f s", seconds, seed, out, elapsed)
     return SimulationResult(
@@ -425,6 +452,13 @@ def record_session(
                 dev.close()
             except Exception as err:  # closing must not hide the outcome
                 _log.warning("closing %s failed: %s", dev, err)
+    pulses: list[int] = []
+    if d415s:
+        master = d415s[0]
+        t = master.pulse_at_or_after(0)
+        while t is not None and t <= world.duration_ns:
+            pulses.append(int(t))
+            t = master.pulse_at_or_after(t + 1)
     driver_drops = 0
     if cam is not None:
         st = cam.stats()
@@ -451,6 +485,7 @@ def record_session(
         davis_driver_drops=driver_drops,
         bytes=summary.bytes,
         elapsed_s=time.monotonic() - t_start,
+        sync_pulses_ns=tuple(pulses),
     )
 
 
@@ -505,6 +540,21 @@ def _write_captures(path: Path, d415s: Sequence[Any]) -> None:
         arrays[f"{key}__is_master"] = np.array(d.sync_mode.name == "MASTER")
     with path.open("wb") as f:  # truth/ is rewritten as a whole by simulate_session
         np.savez(f, **arrays)  # type: ignore[arg-type]
+
+
+def _write_sync_truth(path: Path, sync: AnalogCapture, pulses_ns: Sequence[int]) -> None:
+    """The sync channel's truth: the master's pulses and the switch instants of the signal
+    (session ns; switch = pulse + the box's latency), its polarity and RC time constant."""
+    with path.open("wb") as f:
+        np.savez(
+            f,
+            pulse_ns=np.asarray(pulses_ns, dtype=np.int64),
+            switch_ns=np.asarray(sync.edges_ns, dtype=np.int64),
+            rising=np.asarray(sync.edge_rising, dtype=bool),
+            tau_ns=np.array(sync.tau_ns),
+            rate_hz=np.array(sync.rate_hz),
+            channel=np.array(sync.labels[0]),
+        )
 
 
 def _write_davis_clock(path: Path, world: Scenario, sim: Any) -> None:

@@ -4,7 +4,7 @@
 box's side from a background thread; :attr:`MockSyncBox.port` is the slave path, which
 ``serial.Serial(port)`` or ``serial.serial_for_url(port)`` opens like a USB CDC port.
 
-Behaviour (protocol version 1, ``<board>`` = ``mock``):
+Behaviour (protocol version 1, ``<board>`` = ``mock``, feature ``toggle``):
 
 * lines of at most 64 characters, host ``\\n``-terminated, ``\\r`` and empty lines ignored; the box
   ends its lines with ``\\r\\n``; every command gets exactly one reply line (``ERR <code> <text>``
@@ -353,7 +353,7 @@ class MockSyncBox:
     # -- commands ---------------------------------------------------------------------------------
 
     def _banner(self) -> str:
-        return f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} {self.board}"
+        return f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} {self.board} toggle"
 
     def _handle(self, line: str) -> str:
         tokens = line.split(" ")

@@ -29,6 +29,19 @@ Measurement model
   volume are gaps too;
 * residuals (mm): Gamma-distributed with the spec's mean and spread, quantised to the C3D's
   0.1 mm step (|POINT:SCALE|); −1 for gaps.
+
+Sync channel
+============
+
+With D415s in the session, :func:`simulate_sync_channel` gives the trial an analog channel
+``D415_SYNC`` (docs/wiring.md §7): the sync box's toggle output, which flips at every pulse of
+the D415 master (after the box's interrupt latency), through an RC low-pass into a Vicon analog
+input, sampled on the Vicon clock at ``SyncWiring.rate_hz`` (an integer number of samples per
+Vicon frame; C3D analog sample ``s`` of the trial is at Vicon device time
+``((start_field − 1)·spf + s) / rate``), with Gaussian noise and 16-bit quantisation over ±10 V.
+The pulse instants are the ones the mock D415 master really emitted in the recorded session
+(``SessionRecording.sync_pulses_ns``), so the analog edges and the recorded frames are the same
+events.
 """
 
 from __future__ import annotations
@@ -54,8 +67,12 @@ if TYPE_CHECKING:
 
 __all__ = [
     "C3D_POINT_SCALE",
+    "SYNC_CHANNEL",
+    "AnalogCapture",
+    "SyncWiring",
     "ViconCapture",
     "capture_markers",
+    "simulate_sync_channel",
     "simulate_vicon",
     "vicon_frame_times_ns",
     "write_c3d",
@@ -76,6 +93,9 @@ _FACING_LIMIT_DEG = 80.0
 
 #: How many frames are sampled per block (bounds memory and drives the progress callback).
 _BLOCK_FRAMES = 600
+
+#: Label of the simulated sync channel (the sync box's toggle output, docs/wiring.md §7).
+SYNC_CHANNEL = "D415_SYNC"
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -109,6 +129,133 @@ class ViconCapture:
     def gap_fraction(self) -> float:
         """Fraction of samples that are gaps."""
         return float(np.mean(self.residuals_mm < 0)) if self.residuals_mm.size else 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class SyncWiring:
+    """The sync box's toggle output on a Vicon analog input (docs/wiring.md §7).
+
+    Attributes:
+        rate_hz: Analog sampling rate (Hz); an integer multiple of the Vicon frame rate.
+        low_v: Output level low (V).
+        high_v: Output level high (V) as seen by the input (5 V into ≥ 100 kΩ through 4.7 kΩ).
+        tau_us: Nominal time constant of the RC low-pass at the input (µs; 4.7 kΩ × 100 nF).
+        tau_tolerance: Per-session relative deviation of the time constant, uniform in
+            ±``tau_tolerance`` (component tolerances): the calibration must measure τ.
+        latency_us: The box's interrupt latency from the master's pulse to the toggle (µs).
+        latency_jitter_us: Uniform jitter of that latency, ± (µs).
+        noise_v: Gaussian noise of the input (V RMS).
+        lsb_v: Quantisation step (V): 16 bits over ±10 V.
+    """
+
+    rate_hz: float = 2400.0
+    low_v: float = 0.0
+    high_v: float = 4.8
+    tau_us: float = 470.0
+    tau_tolerance: float = 0.05
+    latency_us: float = 2.0
+    latency_jitter_us: float = 1.0
+    noise_v: float = 0.002
+    lsb_v: float = 20.0 / 65536.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class AnalogCapture:
+    """Analog channels of a simulated Vicon trial, in physical units.
+
+    Attributes:
+        labels: Channel labels (C).
+        units: Channel units (C).
+        descriptions: Channel descriptions (C).
+        rate_hz: Sampling rate (Hz), an integer multiple of the trial's frame rate.
+        values: ``(S, C)`` samples, ``S`` = frames × samples per frame.
+        edges_ns: True session times (int64 ns) at which the signal switched (truth).
+        edge_rising: ``(E,)`` True where the switch went low → high.
+        tau_ns: The true RC time constant (ns).
+    """
+
+    labels: tuple[str, ...]
+    units: tuple[str, ...]
+    descriptions: tuple[str, ...]
+    rate_hz: float
+    values: F64 = field(repr=False)
+    edges_ns: I64 = field(repr=False)
+    edge_rising: npt.NDArray[np.bool_] = field(repr=False)
+    tau_ns: float
+
+
+def simulate_sync_channel(
+    capture: ViconCapture,
+    clock: DeviceClock,
+    pulses_ns: npt.ArrayLike,
+    *,
+    rng: np.random.Generator,
+    wiring: SyncWiring | None = None,
+) -> AnalogCapture:
+    """The ``D415_SYNC`` analog channel of a trial: the sync box's toggle output (module doc).
+
+    Args:
+        capture: The Vicon trial (its first frame and frame count fix the samples).
+        clock: The Vicon frame clock (analog samples are on it).
+        pulses_ns: The D415 master's sync pulses (session ns, increasing); each flips the level.
+        rng: Seeded generator (time constant, latency jitter, noise).
+        wiring: The wiring model (default :class:`SyncWiring`).
+
+    Returns:
+        One channel in volts; the switch instants as truth.
+
+    Raises:
+        ValidationError: the analog rate is not an integer multiple of the frame rate.
+    """
+    w = wiring or SyncWiring()
+    spf = w.rate_hz / capture.rate_hz
+    if abs(spf - round(spf)) > 1e-9 or round(spf) < 1:
+        msg = (
+            f"the analog rate {w.rate_hz:g} Hz must be an integer multiple of the Vicon frame "
+            f"rate {capture.rate_hz:g} Hz"
+        )
+        raise ValidationError(msg)
+    spf_i = round(spf)
+    pulses = np.sort(np.asarray(pulses_ns, dtype=np.int64))
+    tau = w.tau_us * 1e3 * (1.0 + rng.uniform(-w.tau_tolerance, w.tau_tolerance))
+    latency = w.latency_us * 1e3 + rng.uniform(-1.0, 1.0, size=pulses.shape) * (
+        w.latency_jitter_us * 1e3
+    )
+    edges = pulses.astype(np.float64) + latency
+    target = ((np.arange(edges.size) + 1) % 2).astype(np.float64)  # first pulse: low → high
+    y_before = np.zeros(edges.size)
+    y = 0.0  # settled low before the first pulse
+    for j in range(1, edges.size):
+        y = target[j - 1] + (y - target[j - 1]) * np.exp(-(edges[j] - edges[j - 1]) / tau)
+        y_before[j] = y
+    n_samples = capture.num_frames * spf_i
+    n = (capture.start_field - 1) * spf_i + np.arange(n_samples, dtype=np.int64)
+    device = np.round(n.astype(np.float64) * (1e9 / w.rate_hz)).astype(np.int64)
+    t = clock.session_ns(device, unit_ns=1).astype(np.float64)
+    k = np.searchsorted(edges, t, side="right") - 1
+    kk = np.clip(k, 0, max(edges.size - 1, 0))
+    if edges.size:
+        level = target[kk] + (y_before[kk] - target[kk]) * np.exp(-(t - edges[kk]) / tau)
+        level = np.where(k >= 0, level, 0.0)
+    else:
+        level = np.zeros(n_samples)
+    volts = w.low_v + (w.high_v - w.low_v) * level + rng.normal(0.0, w.noise_v, n_samples)
+    volts = np.round(volts / w.lsb_v) * w.lsb_v
+    values = volts[:, None]
+    edges_ns = np.round(edges).astype(np.int64)
+    rising = target.astype(bool)
+    for arr in (values, edges_ns, rising):
+        arr.setflags(write=False)
+    return AnalogCapture(
+        labels=(SYNC_CHANNEL,),
+        units=("V",),
+        descriptions=("sync box toggle output: each edge is a D415 master frame pulse",),
+        rate_hz=float(w.rate_hz),
+        values=values,
+        edges_ns=edges_ns,
+        edge_rising=rising,
+        tau_ns=float(tau),
+    )
 
 
 def vicon_frame_times_ns(
@@ -296,14 +443,21 @@ def _int16_words(value: int) -> list[int]:
     return [low - 0x10000 if low >= 0x8000 else low, high]
 
 
-def write_c3d(capture: ViconCapture, path: str | Path, *, subject: str = "actor") -> Path:
+def write_c3d(
+    capture: ViconCapture,
+    path: str | Path,
+    *,
+    subject: str = "actor",
+    analogs: AnalogCapture | None = None,
+) -> Path:
     """Write the capture as a Vicon-like float C3D (mm), with ezc3d directly.
 
     Parameters written: POINT (RATE, UNITS ``mm``, SCALE −0.1 → float data, LABELS,
     DESCRIPTIONS, X_SCREEN ``+X``, Y_SCREEN ``+Z``), TRIAL (ACTUAL_START_FIELD,
     ACTUAL_END_FIELD, CAMERA_RATE), SUBJECTS (NAMES, LABEL_PREFIXES, USES_PREFIXES) and
     MANUFACTURER (COMPANY ``mocaprig``, SOFTWARE ``simulated Vicon``, VERSION_LABEL). Gaps are
-    NaN with residual −1.
+    NaN with residual −1. With ``analogs``: ANALOG (RATE, LABELS, UNITS, DESCRIPTIONS, SCALE 1,
+    OFFSET 0, GEN_SCALE 1, as Nexus writes float files) and the samples.
 
     Raises:
         RecordingError: the file cannot be written.
@@ -330,6 +484,23 @@ def write_c3d(capture: ViconCapture, path: str | Path, *, subject: str = "actor"
     step = abs(C3D_POINT_SCALE)
     res[res >= 0] += 0.5 * step
     c3d["data"]["meta_points"]["residuals"] = res
+    if analogs is not None:
+        spf = round(analogs.rate_hz / capture.rate_hz)
+        n_ch = len(analogs.labels)
+        if analogs.values.shape != (num_frames * spf, n_ch):
+            msg = (
+                f"analog samples have shape {analogs.values.shape}, expected "
+                f"{(num_frames * spf, n_ch)} ({spf} per frame)"
+            )
+            raise ValidationError(msg)
+        aparams = params["ANALOG"]
+        aparams["RATE"]["value"] = np.array([analogs.rate_hz])
+        aparams["LABELS"]["value"] = list(analogs.labels)
+        aparams["DESCRIPTIONS"]["value"] = list(analogs.descriptions)
+        aparams["UNITS"]["value"] = list(analogs.units)
+        aparams["SCALE"]["value"] = np.ones(n_ch)
+        aparams["GEN_SCALE"]["value"] = np.array([1.0])
+        c3d["data"]["analogs"] = analogs.values.T[None].astype(np.float64)
     c3d.add_parameter("POINT", "X_SCREEN", ["+X"])
     c3d.add_parameter("POINT", "Y_SCREEN", ["+Z"])
     _int_parameter(c3d, "TRIAL", "ACTUAL_START_FIELD", _int16_words(capture.start_field))

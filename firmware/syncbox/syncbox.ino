@@ -11,6 +11,16 @@
 //   D2  (INT0)  IN: pulses to count in LISTEN mode (rising edges), e.g. the D415 master's sync
 //               output through the 1.8 V -> 5 V level shifter. Has no pull-up; tie it to GND
 //               through 100 kOhm if left open.
+//   D10 (PB2)   TOGGLE OUT (feature "toggle"): flips at every pulse of a run (each counted edge in
+//               LISTEN, each generated pulse in GENERATE), so each of its edges, rising or
+//               falling, is one pulse: a square wave at half the frame rate that a Vicon analog
+//               input resolves at any rate (docs/wiring.md section 7). Low when idle and at the
+//               start of a run. Flipped by a write to PINB as the first instruction of the pulse
+//               interrupt: ~1-2 us after the D2 edge in LISTEN (the interrupt response plus the
+//               ISR prologue; up to ~5 us more when the millis/serial interrupts are running);
+//               in GENERATE the Timer1 overflow fires one timer tick before D9 rises, so D10
+//               leads D9 by about one tick minus that latency (~2-3 us at 30 Hz). Verify with a
+//               scope (D2 or D9 against D10).
 //   D13 (LED)   on while a run is active.
 //
 // Timing: PULSES' <t_us> is micros() captured in the interrupt of each pulse (4 us resolution
@@ -32,6 +42,7 @@
 
 static const uint8_t PIN_OUT = 9;   // OC1A
 static const uint8_t PIN_IN = 2;    // INT0
+static const uint8_t PIN_TOGGLE = 10;  // PB2
 static const uint8_t PIN_LED = 13;
 static const uint8_t LINE_MAX = 64;
 
@@ -51,14 +62,29 @@ static bool g_overflow = false;
 
 // -- pulse sources ---------------------------------------------------------------------------
 
+// Writing 1 to a PINx bit flips that PORTx bit (ATmega328P): one instruction, done first.
+#define TOGGLE_OUT() (PINB = _BV(PINB2))
+
 ISR(TIMER1_OVF_vect) {
+  TOGGLE_OUT();
   g_count++;
   g_last_us = micros();
 }
 
-static void on_input_edge() {
+// INT0 directly rather than attachInterrupt(): no call through the core's handler table, so
+// the toggle comes sooner and with less jitter.
+ISR(INT0_vect) {
+  TOGGLE_OUT();
   g_count++;
   g_last_us = micros();
+}
+
+static void start_listening() {
+  noInterrupts();
+  EICRA = (EICRA & ~(_BV(ISC01) | _BV(ISC00))) | _BV(ISC01) | _BV(ISC00);  // rising edge
+  EIFR = _BV(INTF0);                                                      // no stale edge
+  EIMSK |= _BV(INT0);
+  interrupts();
 }
 
 static void read_counter(uint32_t *count, uint32_t *t_us) {
@@ -84,6 +110,7 @@ static bool start_generator(uint16_t hz, uint32_t width_us) {
     TCCR1A = 0;
     TCCR1B = 0;
     TCNT1 = 0;
+    PORTB &= ~_BV(PORTB2);  // the toggle output starts low
     ICR1 = (uint16_t)(period - 1);
     OCR1A = (uint16_t)(width - 1);
     g_count = 0;
@@ -104,8 +131,9 @@ static void stop_sources() {
   TCCR1A = 0;
   TIMSK1 = 0;
   interrupts();
+  EIMSK &= ~_BV(INT0);
   digitalWrite(PIN_OUT, LOW);
-  detachInterrupt(digitalPinToInterrupt(PIN_IN));
+  digitalWrite(PIN_TOGGLE, LOW);
   digitalWrite(PIN_LED, LOW);
 }
 
@@ -115,7 +143,8 @@ static void send_banner() {
   Serial.print(F("MOCAPRIG-SYNCBOX "));
   Serial.print(PROTOCOL_VERSION);
   Serial.print(' ');
-  Serial.println(F(BOARD_NAME));
+  Serial.print(F(BOARD_NAME));
+  Serial.println(F(" toggle"));  // feature tokens (docs/syncbox-protocol.md)
 }
 
 static void send_err(uint8_t code, const __FlashStringHelper *text) {
@@ -175,8 +204,9 @@ static void handle_line(char *line) {
     noInterrupts();
     g_count = 0;
     g_last_us = micros();
+    PORTB &= ~_BV(PORTB2);  // the toggle output starts low
     interrupts();
-    attachInterrupt(digitalPinToInterrupt(PIN_IN), on_input_edge, RISING);
+    start_listening();
     g_mode = MODE_LISTEN;
     g_last_report_ms = millis();
     digitalWrite(PIN_LED, HIGH);
@@ -261,6 +291,8 @@ void setup() {
   pinMode(PIN_OUT, OUTPUT);
   digitalWrite(PIN_OUT, LOW);
   pinMode(PIN_IN, INPUT);
+  pinMode(PIN_TOGGLE, OUTPUT);
+  digitalWrite(PIN_TOGGLE, LOW);
   pinMode(PIN_LED, OUTPUT);
   digitalWrite(PIN_LED, LOW);
   Serial.begin(115200);

@@ -1,29 +1,54 @@
 """Marker-level simulated D415 observations for training and evaluating DeMoCap.
 
 No images are rendered: each frame's 53 true markers are "seen" by each D415 of a sampled rig
-through a measurement model of what the paper's per-view blob extraction and depth lifting
-produce (democap-method.md §1.1), then fused as in §3.3/§3.4:
+through a model of what the real measurement (:mod:`calib.markers`: IR blobs, depth read in a
+disc around each blob, deprojection) gives, then fused as the replay fuses them. Every
+parameter below was matched to that measurement on simulated recordings with truth (the mock
+D415 renders IR and depth images; ``benchmarks/democap_simdata_match.py``: fitted on 300 rig
+instants of two 30 s sessions, 4 D415s, true camera poses, checked on 599; docs/democap.md
+"Training data"):
 
 * **rig** (:func:`sample_rig`): D415s on a circle (radius 2.5 m ± 0.25, height 1.4 m ± 0.15,
   azimuths 45°, 135°, 225°, 315° ± 8°) aimed at (0, 0, 0.9 m) ± 0.1, 848×480 IR, fx 623 px
   ± 3 % (the simulated world's layout, docs/simulated-world.md). Three cameras drop one at
   random; two keep an opposing pair.
-* **visibility** (:func:`visibility`): a marker is detected by a camera when it lies in the
-  image (8 px margin), 0.3–6 m away, faces the camera (angle between the skin normal and the
-  line of sight < 80°), and the line of sight is not blocked by any body capsule
-  (:mod:`process.body.surface`). The blocking test is exact for capsules: the segment from the
-  camera to 12 mm short of the marker centre must stay farther than the capsule radius from
-  every capsule axis (segment–segment distance). Self-occlusion follows from the same test.
-* **measurement** (:func:`observe`): the IR blob centre gets 0.25 px of lateral noise, the
-  depth the D415 stereo noise ``σz = z²·s/(f·B)`` with s = 0.08 px, B = 55 mm (the D415 model
-  of ``drivers_mock/d415_render.py``), plus a 2 mm floor for the retro-reflective surface; the
-  lifted point is on the marker's front surface (7 mm short of its centre). 2 % of detections
-  get a gross depth error of 3–15 cm (saturated IR in the stereo match); 4 % are lost at random.
-* **ghosts**: per view a Poisson number (mean 0.7) of spurious points: half reflections on the
-  suit (a random point 0–3 cm off the skin), half stray reflections within 1 m of the actor.
+* **line of sight** (:func:`visibility`): markers are retro-reflective spheres standing
+  :data:`MARKER_RADIUS_M` off the skin, so there is no facing cut: a camera sees a marker until
+  a body capsule (:mod:`process.body.surface`, its own limb included) covers it. The
+  *normalised gap* ``g`` is the clearance of the segment camera → marker centre from the
+  nearest capsule surface, as an angle, in units of the marker's angular radius: ``g ≥ 1`` the
+  whole sphere is in view, ``g = 0`` half of it, ``g ≤ -1`` none (a straight occluding edge).
+  Measured: markers 90–135° from facing the camera are still detected 92–97 % of the time when
+  the line of sight is clear.
+* **detection** (:func:`observe`): in the image (:data:`IMAGE_MARGIN_PX`), 0.3–6 m, and then
+  with probability ``DETECT_MAX / (1 + exp(-(g - DETECT_GAP50) / DETECT_GAP_WIDTH))``; blobs of
+  two detected markers whose image discs (radius ρ = f·r/Z) nearly touch merge, with a
+  probability falling with the gap between the discs (:data:`BLOB_MERGE_PX50`), into one blob
+  at their mean position and the nearer depth.
+* **blob centre**: the projected centre + :data:`LATERAL_RMS_PX` of noise per axis, moved
+  ``OCCLUSION_SHIFT·(1 - g)·ρ`` away from the occluder when the sphere is partly hidden (the
+  visible part's centroid).
+* **depth** (the near-cluster median of the blob's disc): the D415 gives the depth of the
+  nearest surface around the blob, not of the marker. The model takes ``Z_near``, the nearest
+  capsule surface within :data:`RING_PX` of the line of sight (the marker's own limb at grazing
+  angles, or another limb passing in front), and sets the depth error
+  ``dZ = bias(Z_near - Z) + k·σz(Z)·N(0, 1)`` with ``bias`` the piecewise-linear
+  :data:`DEPTH_BIAS_KNOTS_M` (≈ +9 mm for a marker facing the camera: the skin around it lies
+  behind its centre; ≈ ``Z_near - Z`` when a limb is in front: the occlusion tail),
+  ``σz = Z²·s/(f·B)`` (s = 0.08 px, B = 55 mm, the D415 model of
+  ``drivers_mock/d415_render.py``) and ``k`` = :data:`DEPTH_NOISE_CLEAR` or, within 10 mm of a
+  nearer surface, :data:`DEPTH_NOISE_EDGE`. :data:`GROSS_RATE` of the detections are gross
+  outliers ``-(GROSS_MIN_M + Exp(GROSS_SCALE_M))`` (the marker's saturated core matched wrong
+  and nearer). The point is deprojected from the blob centre at the measured depth.
+* **strays**: per view a Poisson number (:data:`DOT_GHOSTS_PER_VIEW`) of projector-dot blobs
+  on the suit: points on the camera-facing surface of a random capsule (weighted by its
+  projected area), kept when the line of sight is clear; and per sample a Poisson number
+  (:data:`REFLECTORS_MEAN`) of static reflective objects 0.5–1.2 m from the actor at 0.9–1.6 m
+  height (the simulated world's clapperboard markers), seen by every camera like a marker.
 * **fusion** (:func:`merge_views`): union of the views, points outside the capture box dropped,
-  then points from different cameras closer than 10 mm merged (connected components, mean).
-  Duplicates whose errors exceed 10 mm stay separate, as on the real rig.
+  then points closer than 10 mm merged, single linkage over all points (as
+  :func:`calib.markers.merge_views` in the replay). Most markers seen by two cameras stay two
+  points: their depth errors point along different rays.
 
 Everything is deterministic for a ``numpy.random.Generator``.
 """
@@ -66,15 +91,97 @@ BoolArray = npt.NDArray[np.bool_]
 IMAGE_W, IMAGE_H = 848, 480
 FOCAL_PX = 623.0
 BASELINE_M = 0.055
+#: D415 sub-pixel disparity RMS (px): σz = Z²·s/(f·B) per depth pixel (d415_render.py).
 SUBPIXEL_RMS_PX = 0.08
-LATERAL_RMS_PX = 0.25
-DEPTH_FLOOR_M = 0.002
+#: Marker sphere radius (m); centres sit this far off the skin (process.body.markers).
 MARKER_RADIUS_M = 0.007
-GROSS_RATE = 0.02
-MISS_RATE = 0.04
-GHOSTS_PER_VIEW = 0.7
+#: A blob centre must lie this far inside the image (px).
+IMAGE_MARGIN_PX = 2.0
+#: Detection range (m).
+RANGE_M = (0.3, 6.0)
+
+#: Normalised gap at which half the markers are detected; measured −0.87 (logistic fit over
+#: 48,100 marker views in the image with no marker within 10 px: 49 % detected at
+#: g ∈ [−1, −0.75], 24 % at [−1.25, −1], 91 % at [−0.5, −0.25]).
+DETECT_GAP50 = -0.87
+#: Width of the detection logistic (normalised gap); measured 0.21.
+DETECT_GAP_WIDTH = 0.21
+#: Detection rate of a fully visible, isolated marker: measured 99.5 % (so 0.5 % random
+#: misses).
+DETECT_MAX = 0.995
+#: Two detected markers' blobs merge with probability 1 / (1 + exp((x − BLOB_MERGE_PX50) /
+#: BLOB_MERGE_WIDTH_PX)), x = the gap between their discs in the image (centre distance minus
+#: both image radii ρ, px): the blob reaches ≈ 0.6 px beyond ρ (soft edge far above the
+#: threshold) and 8-connectivity joins diagonal neighbours. Measured on 908 pairs of visible
+#: markers (centres ≤ 10 px apart) in 200 rendered frames: one blob for 95 % of the pairs at
+#: x ∈ [1, 1.5], 57 % at [1.75, 2], 33 % at [2, 2.25], 12 % at [2.25, 2.5].
+BLOB_MERGE_PX50 = 1.9
+BLOB_MERGE_WIDTH_PX = 0.25
+#: Blob centre noise (px, per axis) of a fully visible marker: measured median 0.13 px and 90th
+#: percentile 0.32 px of the centre error for g ≥ 0.9.
+LATERAL_RMS_PX = 0.11
+#: Centroid shift of a partly hidden marker, in units of (1 − g)·ρ: measured median shift
+#: 0.23ρ at g ∈ [0.5, 0.9], 0.38ρ at [0, 0.5], 0.71ρ at [−0.5, 0], 0.91ρ at [−1, −0.5].
+OCCLUSION_SHIFT = 0.5
+#: Log-normal spread (σ of the log) of that shift: measured 90th/50th percentile ratio 1.4–1.9
+#: per gap bin.
+OCCLUSION_SHIFT_SPREAD = 0.4
+#: A capsule surface this close to the line of sight (px, at the surface's depth) sets the
+#: blob's depth. calib.markers reads the depth in a disc ≈ ρ + 3.6 px wide (the blob and a
+#: 3 px ring) and keeps the median of its near cluster, so a surface counts once it fills much
+#: of the disc: with 3 px the measured median error follows Z_near − Z within 1–9 mm over
+#: −200…−20 mm, and the relation holds at 1.5–2.3, 2.3–2.6 and 2.6–3.2 m alike.
+RING_PX = 3.0
+#: Median depth error (m) against Z_near − Z (m), piecewise linear, clamped at the ends: the
+#: measured medians of 37,200 lifted markers per Z_near − Z bin.
+DEPTH_BIAS_KNOTS_M: tuple[tuple[float, float], ...] = (
+    (-0.600, -0.526),
+    (-0.300, -0.317),
+    (-0.150, -0.169),
+    (-0.100, -0.081),
+    (-0.070, -0.062),
+    (-0.050, -0.046),
+    (-0.035, -0.030),
+    (-0.020, -0.018),
+    (-0.010, -0.0067),
+    (0.000, -0.0026),
+    (0.010, 0.0036),
+    (0.020, 0.0067),
+    (0.035, 0.0093),
+    (0.080, 0.0090),
+)
+#: Depth noise around the bias in units of σz, for a marker with no nearer surface within
+#: 10 mm: measured MAD 0.38–0.40σz at every distance from 1.5 to 3.2 m (σ ≈ 0.56σz: the
+#: median over the disc averages pixels).
+DEPTH_NOISE_CLEAR = 0.56
+#: ... and with a nearer surface within 10 mm: measured MAD 0.55–0.74σz.
+DEPTH_NOISE_EDGE = 0.9
+#: Gross depth outliers, −(GROSS_MIN_M + Exp(GROSS_SCALE_M)): measured 0.9 % of the markers
+#: with nothing nearer around them 35–300 mm too near (10th/50th/90th percentile 35, 120,
+#: 290 mm; the mock D415's saturated marker cores, 15 % of them offset by σ 5 cm).
+GROSS_RATE = 0.009
+GROSS_MIN_M = 0.035
+GROSS_SCALE_M = 0.10
+#: Projector-dot blobs on the suit per view, before the line-of-sight test (the laser dots'
+#: speckle peaks cross the blob threshold on bright clothing): 4.5 give 3.3 per view, as
+#: measured (3.3 per view, on the body surface — median 1 mm off it — and facing the camera,
+#: median cos 0.9).
+DOT_GHOSTS_PER_VIEW = 4.5
+#: Largest angle (deg) between a dot ghost's surface normal and the line of sight.
+DOT_GHOST_MAX_ANGLE_DEG = 60.0
+#: Static stray reflectors per sample (Poisson mean), 0.5–1.2 m from the actor at 0.9–1.6 m:
+#: the simulated world's clapperboard holds 2 markers, measured 1.6 blobs off the body per
+#: view; the model gives 1.8.
+REFLECTORS_MEAN = 2.0
+#: Fusion: points closer than this merge (m), as in the replay.
 MERGE_RADIUS_M = 0.010
+#: Points outside this world box (m) are dropped before the merge (the replay's crop).
 CAPTURE_BOX_M = ((-2.2, 2.2), (-2.2, 2.2), (-0.1, 2.4))
+#: Z_near − Z below which a marker counts as next to a nearer surface (m).
+_EDGE_ZNEAR_M = 0.010
+_KNOTS = np.array(DEPTH_BIAS_KNOTS_M, dtype=np.float64)
+#: Dot ghosts are placed this far off the skin so their own capsule does not hide them (m).
+_DOT_LIFT_M = 0.002
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,25 +290,80 @@ def pose_frames(motion: Motion, shape: BodyShape, markers: MarkerSet) -> PoseFra
     )
 
 
-def _segment_distance(p0: FloatArray, p1: FloatArray, q0: FloatArray, q1: FloatArray) -> FloatArray:
-    """Distance between segments [p0, p1] and [q0, q1], broadcast over leading axes."""
-    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
-    a = np.sum(d1 * d1, -1)
-    e = np.sum(d2 * d2, -1)
-    f = np.sum(d2 * r, -1)
-    c = np.sum(d1 * r, -1)
-    b = np.sum(d1 * d2, -1)
+@dataclass(frozen=True, slots=True)
+class _Sight:
+    """What one camera sees of P points (markers, reflectors, stray candidates)."""
+
+    z: FloatArray  # (P,) camera Z (m)
+    uv: FloatArray  # (P, 2) projected centres (px)
+    inside: BoolArray  # (P,) in the image and range
+    gap: FloatArray  # (P,) normalised gap g (large when nothing is near)
+    away_cam: FloatArray  # (P, 2) image direction from the occluder to the point (unit or 0)
+    znear: FloatArray  # (P,) nearest capsule surface within RING_PX, minus z (m; inf: none)
+
+
+def _sight(
+    points: FloatArray,
+    caps_a: FloatArray,
+    caps_b: FloatArray,
+    caps_r: FloatArray,
+    cam: Camera,
+) -> _Sight:
+    """Projection, normalised gap, occluder direction and Z_near of ``points`` for ``cam``.
+
+    The closest approach of each line of sight (segment camera -> point) to each capsule axis
+    (segment a -> b) is solved for all pairs at once from dot products (Ericson, Real-Time
+    Collision Detection §5.1.9).
+    """
+    f = cam.focal_px
+    rel = points - cam.centre_m  # d1, (P, 3)
+    pc = rel @ cam.r_cw.T
+    z = pc[:, 2]
+    zs = np.where(z > 1e-6, z, 1.0)
+    uv = np.stack([f * pc[:, 0] / zs + IMAGE_W / 2, f * pc[:, 1] / zs + IMAGE_H / 2], axis=1)
+    n = points.shape[0]
+    dist2 = np.einsum("ij,ij->i", rel, rel)
+    mg = IMAGE_MARGIN_PX
+    inside = (z > RANGE_M[0]) & (dist2 < RANGE_M[1] ** 2)
+    inside &= (uv[:, 0] > mg) & (uv[:, 0] < IMAGE_W - mg)
+    inside &= (uv[:, 1] > mg) & (uv[:, 1] < IMAGE_H - mg)
+    if caps_r.size == 0 or n == 0:
+        return _Sight(z, uv, inside, np.full(n, 10.0), np.zeros((n, 2)), np.full(n, np.inf))
+    ax = caps_b - caps_a  # d2, (C, 3)
+    r0 = cam.centre_m - caps_a  # (C, 3)
+    a = np.maximum(dist2, 1e-12)[:, None]  # (P, 1)
+    e = np.einsum("ij,ij->i", ax, ax)[None]  # (1, C)
+    ff = np.einsum("ij,ij->i", ax, r0)[None]  # (1, C)
+    c = rel @ r0.T  # (P, C)
+    b = rel @ ax.T  # (P, C)
     denom = a * e - b * b
-    s = np.where(
-        denom > 1e-12, np.clip((b * f - c * e) / np.where(denom > 1e-12, denom, 1), 0, 1), 0.0
-    )
-    t = (b * s + f) / np.where(e > 1e-12, e, 1.0)
-    # clamp t, recompute s (Ericson, Real-Time Collision Detection §5.1.9)
+    ok = denom > 1e-12
+    s = np.where(ok, np.clip((b * ff - c * e) / np.where(ok, denom, 1.0), 0.0, 1.0), 0.0)
+    t = (b * s + ff) / np.where(e > 1e-12, e, 1.0)
     t_lo, t_hi = t < 0, t > 1
     t = np.clip(t, 0.0, 1.0)
     s = np.where(t_lo, np.clip(-c / a, 0, 1), np.where(t_hi, np.clip((b - c) / a, 0, 1), s))
-    diff = (p0 + s[..., None] * d1) - (q0 + t[..., None] * d2)
-    return np.asarray(np.linalg.norm(diff, axis=-1))
+    r2 = np.einsum("ij,ij->i", r0, r0)[None]
+    d2 = r2 + s * s * a + t * t * e + 2 * s * c - 2 * t * ff - 2 * s * t * b
+    d = np.sqrt(np.maximum(d2, 0.0))
+    z_seg = np.maximum(s * z[:, None], 0.05)
+    rad = caps_r[None]
+    gap = (d - rad) * z[:, None] / (z_seg * MARKER_RADIUS_M)
+    k = np.argmin(gap, axis=1)
+    rows = np.arange(n)
+    # Image direction from the occluder's axis to the line of sight at the closest approach.
+    sk, tk = s[rows, k, None], t[rows, k, None]
+    w = (r0[k] + sk * rel - tk * ax[k]) @ cam.r_cw[:2].T
+    norm = np.linalg.norm(w, axis=1, keepdims=True)
+    away = np.where(norm > 1e-9, w / np.where(norm > 1e-9, norm, 1.0), 0.0)
+    # Nearest capsule surface within RING_PX of the line of sight (its camera Z).
+    ring = RING_PX * z_seg / f
+    lat = np.maximum(d - ring, 0.0)
+    z_axis = -(r0 @ cam.r_cw[2])[None] + t * (ax @ cam.r_cw[2])[None]
+    cand = np.where(
+        d - rad < ring, z_axis - np.sqrt(np.maximum(rad * rad - lat * lat, 0.0)), np.inf
+    )
+    return _Sight(z, uv, inside, gap[rows, k], away, cand.min(axis=1) - z)
 
 
 def visibility(
@@ -212,34 +374,115 @@ def visibility(
     caps_radius_m: FloatArray,
     cams: list[Camera],
     *,
-    max_angle_deg: float = 80.0,
+    max_angle_deg: float = 180.0,
 ) -> BoolArray:
-    """Which camera detects which marker, one frame: (K cameras, M markers) booleans."""
+    """Which camera sees which marker, one frame: (K cameras, M markers) booleans.
+
+    A marker is visible when its centre projects into the image (:data:`IMAGE_MARGIN_PX`),
+    0.3–6 m away, and its normalised gap (module doc) is at least :data:`DETECT_GAP50`, where
+    half of such markers are detected. ``max_angle_deg`` adds a facing cut (angle between the
+    skin normal and the line of sight); the default keeps none, as the measurement shows.
+    """
     m = np.asarray(check_shape(markers_m, ["M", 3], name="markers_m"), np.float64)
+    nrm = np.asarray(check_shape(normals, [m.shape[0], 3], name="normals"), np.float64)
+    a = np.asarray(caps_a_m, np.float64).reshape(-1, 3)
+    b = np.asarray(caps_b_m, np.float64).reshape(-1, 3)
+    r = np.asarray(caps_radius_m, np.float64).reshape(-1)
     out = np.zeros((len(cams), m.shape[0]), dtype=bool)
     cos_max = np.cos(np.deg2rad(max_angle_deg))
     for k, cam in enumerate(cams):
+        sight = _sight(m, a, b, r, cam)
         v = cam.centre_m - m
-        dist = np.linalg.norm(v, axis=-1)
-        facing = np.sum(v * normals, -1) / dist > cos_max
-        pc = (m - cam.centre_m) @ cam.r_cw.T
-        z = pc[:, 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        u = cam.focal_px * pc[:, 0] / zs + IMAGE_W / 2
-        w = cam.focal_px * pc[:, 1] / zs + IMAGE_H / 2
-        inside = (
-            (z > 0.3) & (dist < 6.0) & (u > 8) & (u < IMAGE_W - 8) & (w > 8) & (w < IMAGE_H - 8)
-        )
-        end = m + (v / dist[:, None]) * (MARKER_RADIUS_M + 0.005)
-        dseg = _segment_distance(
-            np.broadcast_to(cam.centre_m, end.shape)[:, None, :],
-            end[:, None, :],
-            caps_a_m[None],
-            caps_b_m[None],
-        )
-        clear = np.all(dseg > caps_radius_m[None, :], axis=-1)
-        out[k] = facing & inside & clear
+        facing = np.sum(v * nrm, -1) / np.linalg.norm(v, axis=-1) >= cos_max - 1e-12
+        out[k] = sight.inside & (sight.gap >= DETECT_GAP50) & facing
     return out
+
+
+def _depth_bias(znear: FloatArray) -> FloatArray:
+    x = np.where(np.isfinite(znear), znear, _KNOTS[-1, 0])
+    return np.asarray(np.interp(x, _KNOTS[:, 0], _KNOTS[:, 1]))
+
+
+def _sigma_z(z: FloatArray, focal_px: float) -> FloatArray:
+    return np.asarray(z * z * SUBPIXEL_RMS_PX / (focal_px * BASELINE_M))
+
+
+def _merge_blobs(
+    uv: FloatArray, z: FloatArray, focal_px: float, rng: np.random.Generator
+) -> npt.NDArray[np.int64]:
+    """Blob label of each detection: detections whose blobs run together share a label."""
+    n = uv.shape[0]
+    lab = np.arange(n, dtype=np.int64)
+    if n < 2:
+        return lab
+    rho = focal_px * MARKER_RADIUS_M / z
+    gap = np.linalg.norm(uv[:, None] - uv[None], axis=-1) - rho[:, None] - rho[None]
+    ii, jj = np.nonzero(np.triu(gap < BLOB_MERGE_PX50 + 6.0 * BLOB_MERGE_WIDTH_PX, 1))
+    if ii.size == 0:
+        return lab
+    x = (gap[ii, jj] - BLOB_MERGE_PX50) / BLOB_MERGE_WIDTH_PX
+    merge = rng.random(ii.size) < 1.0 / (1.0 + np.exp(x))
+    for i, j in zip(ii[merge].tolist(), jj[merge].tolist(), strict=True):  # a handful
+        lab[lab == lab[j]] = lab[i]
+    return np.unique(lab, return_inverse=True)[1].astype(np.int64)
+
+
+def _cross(u: FloatArray, v: FloatArray) -> FloatArray:
+    """Row-wise cross product of (N, 3) arrays (np.cross is slow for small arrays)."""
+    return np.stack(
+        [
+            u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1],
+            u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+            u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0],
+        ],
+        axis=1,
+    )
+
+
+def _lift(uv: FloatArray, z: FloatArray, cam: Camera) -> FloatArray:
+    f = cam.focal_px
+    pc = np.stack([(uv[:, 0] - IMAGE_W / 2) / f * z, (uv[:, 1] - IMAGE_H / 2) / f * z, z], axis=1)
+    return np.asarray(pc @ cam.r_cw + cam.centre_m)
+
+
+def _dot_candidates(
+    rng: np.random.Generator,
+    caps_a: FloatArray,
+    caps_b: FloatArray,
+    caps_r: FloatArray,
+    cam: Camera,
+) -> FloatArray:
+    """Candidate projector-dot blobs on the suit facing ``cam`` (world, m), before the
+    line-of-sight test."""
+    n = int(rng.poisson(DOT_GHOSTS_PER_VIEW))
+    if n == 0 or caps_r.size == 0:
+        return np.zeros((0, 3))
+    axis = caps_b - caps_a
+    length = np.linalg.norm(axis, axis=1)
+    to_cam = cam.centre_m - 0.5 * (caps_a + caps_b)
+    dist = np.linalg.norm(to_cam, axis=1)
+    sin_ax = np.linalg.norm(_cross(axis, to_cam), axis=1) / np.maximum(length * dist, 1e-9)
+    weight = (2.0 * caps_r * length * sin_ax + np.pi * caps_r**2) / dist**2
+    c = rng.choice(caps_r.size, size=n, p=weight / weight.sum())
+    q = caps_a[c] + rng.random(n)[:, None] * axis[c]
+    u_ax = axis[c] / np.maximum(length[c], 1e-9)[:, None]
+    v = cam.centre_m - q
+    e = v - np.sum(v * u_ax, axis=1, keepdims=True) * u_ax
+    e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-9)
+    phi = np.deg2rad(rng.uniform(-DOT_GHOST_MAX_ANGLE_DEG, DOT_GHOST_MAX_ANGLE_DEG, n))
+    e = np.cos(phi)[:, None] * e + np.sin(phi)[:, None] * _cross(u_ax, e)
+    return np.asarray(q + (caps_r[c, None] + _DOT_LIFT_M) * e)
+
+
+def _reflectors(rng: np.random.Generator, root_m: FloatArray) -> FloatArray:
+    """Static stray reflectors around the actor (world, m)."""
+    n = int(rng.poisson(REFLECTORS_MEAN))
+    az = rng.uniform(0.0, 2.0 * np.pi, n)
+    rad = rng.uniform(0.5, 1.2, n)
+    return np.stack(
+        [root_m[0] + rad * np.cos(az), root_m[1] + rad * np.sin(az), rng.uniform(0.9, 1.6, n)],
+        axis=1,
+    )
 
 
 def observe(
@@ -250,80 +493,82 @@ def observe(
     *,
     realistic: bool = True,
 ) -> tuple[list[FloatArray], BoolArray]:
-    """Per-camera lifted 3D detections of frame ``index`` (world, m) and the visibility mask.
+    """Per-camera lifted 3D detections of frame ``index`` (world, m) and which markers each
+    camera detected ((K, 53) booleans).
 
-    With ``realistic=False`` there are no misses, gross errors or ghosts (noise only).
+    With ``realistic=False`` detection is deterministic (:func:`visibility`), there are no
+    gross errors, blob merges, strays or reflectors, and the blob centre has no noise; the
+    depth bias and noise stay.
     """
     mk = frames.markers_m[index]
-    vis = visibility(
-        mk,
-        frames.normals[index],
-        frames.caps_a_m[index],
-        frames.caps_b_m[index],
-        frames.caps_radius_m,
-        cams,
-    )
+    n_mk = mk.shape[0]
+    caps_a = frames.caps_a_m[index]
+    caps_b = frames.caps_b_m[index]
+    caps_r = frames.caps_radius_m
+    shared = mk
+    if realistic:
+        shared = np.concatenate([mk, _reflectors(rng, frames.joints_m[index, 0])])
+    n_sh = shared.shape[0]
     views: list[FloatArray] = []
+    detected = np.zeros((len(cams), n_mk), dtype=bool)
     for k, cam in enumerate(cams):
-        sel = vis[k].copy()
+        pts = shared
         if realistic:
-            sel &= rng.random(sel.shape) >= MISS_RATE
-        p = mk[sel]
-        ray = p - cam.centre_m
-        dist = np.linalg.norm(ray, axis=-1, keepdims=True)
-        d = ray / np.where(dist > 0, dist, 1.0)
-        z = (p - cam.centre_m) @ cam.r_cw[2]
-        lat_sigma = dist[:, 0] * LATERAL_RMS_PX / cam.focal_px
-        lat = rng.normal(size=(p.shape[0], 2)) * lat_sigma[:, None]
-        sz = np.hypot(z * z * SUBPIXEL_RMS_PX / (cam.focal_px * BASELINE_M), DEPTH_FLOOR_M)
-        dz = rng.normal(size=p.shape[0]) * sz
+            pts = np.concatenate([shared, _dot_candidates(rng, caps_a, caps_b, caps_r, cam)])
+        sight = _sight(pts, caps_a, caps_b, caps_r, cam)
         if realistic:
-            gross = rng.random(p.shape[0]) < GROSS_RATE
-            dz = dz + gross * rng.choice([-1.0, 1.0], p.shape[0]) * rng.uniform(
-                0.03, 0.15, p.shape[0]
-            )
-        q = (
-            p
-            - MARKER_RADIUS_M * d
-            + dz[:, None] * d
-            + lat[:, 0:1] * cam.r_cw[0]
-            + lat[:, 1:2] * cam.r_cw[1]
-        )
+            p = DETECT_MAX / (1.0 + np.exp(-(sight.gap - DETECT_GAP50) / DETECT_GAP_WIDTH))
+            det = sight.inside & (rng.random(pts.shape[0]) < p)
+            # Dot blobs are on the surface: seen where their line of sight is clear.
+            det[n_sh:] = sight.inside[n_sh:] & (sight.gap[n_sh:] > 0.0)
+        else:
+            det = sight.inside & (sight.gap >= DETECT_GAP50)
+        detected[k] = det[:n_mk]
+        idx = np.flatnonzero(det[:n_sh])
+        z = sight.z[idx]
+        rho = cam.focal_px * MARKER_RADIUS_M / z
+        shift = OCCLUSION_SHIFT * (1.0 - np.clip(sight.gap[idx], -1.5, 1.0)) * rho
         if realistic:
-            n_ghost = int(rng.poisson(GHOSTS_PER_VIEW))
-            ghosts = []
-            for _ in range(n_ghost):
-                if rng.random() < 0.5:
-                    c = int(rng.integers(frames.caps_radius_m.shape[0]))
-                    t = rng.random()
-                    axis = frames.caps_a_m[index, c] + t * (
-                        frames.caps_b_m[index, c] - frames.caps_a_m[index, c]
-                    )
-                    dirn = rng.normal(size=3)
-                    dirn /= np.linalg.norm(dirn)
-                    ghosts.append(axis + dirn * (frames.caps_radius_m[c] + rng.uniform(0, 0.03)))
-                else:
-                    ghosts.append(mk.mean(axis=0) + rng.uniform(-1.0, 1.0, 3))
-            if ghosts:
-                q = np.concatenate([q, np.array(ghosts)])
+            shift = shift * np.exp(OCCLUSION_SHIFT_SPREAD * rng.normal(size=shift.size))
+        uv = sight.uv[idx] + shift[:, None] * sight.away_cam[idx]
+        znear = sight.znear[idx]
+        sigma = np.where(znear < _EDGE_ZNEAR_M, DEPTH_NOISE_EDGE, DEPTH_NOISE_CLEAR)
+        dz = _depth_bias(znear) + rng.normal(size=z.size) * sigma * _sigma_z(z, cam.focal_px)
+        if realistic:
+            uv = uv + rng.normal(size=uv.shape) * LATERAL_RMS_PX
+            gross = rng.random(z.size) < GROSS_RATE
+            dz = dz - gross * (GROSS_MIN_M + rng.exponential(GROSS_SCALE_M, z.size))
+        zm = z + dz
+        if realistic and idx.size > 1:
+            lab = _merge_blobs(uv, z, cam.focal_px, rng)
+            if lab.max() + 1 < lab.size:
+                count = np.bincount(lab)
+                uv = np.stack([np.bincount(lab, uv[:, j]) / count for j in (0, 1)], axis=1)
+                zmin = np.full(count.size, np.inf)
+                np.minimum.at(zmin, lab, zm)
+                zm = zmin
+        q = _lift(uv, zm, cam)
+        if realistic:
+            dots = n_sh + np.flatnonzero(det[n_sh:])
+            zd = sight.z[dots]
+            zd = zd + rng.normal(size=zd.size) * DEPTH_NOISE_CLEAR * _sigma_z(zd, cam.focal_px)
+            q = np.concatenate([q, _lift(sight.uv[dots], zd, cam)])
         views.append(q)
-    return views, vis
+    return views, detected
 
 
 def merge_views(views: list[FloatArray], *, radius_m: float = MERGE_RADIUS_M) -> FloatArray:
-    """Fuse per-camera points (world, m): drop points outside the capture box, then merge points
-    of different cameras closer than ``radius_m`` (connected components, averaged)."""
+    """Fuse per-camera points (world, m) as the replay does: drop points outside the capture
+    box, then merge points closer than ``radius_m`` (single linkage over all points, any view;
+    connected components, averaged)."""
     pts = [np.asarray(v, np.float64).reshape(-1, 3) for v in views]
-    cam = np.concatenate([np.full(len(v), i) for i, v in enumerate(pts)]) if pts else np.zeros(0)
     p = np.concatenate(pts) if pts else np.zeros((0, 3))
     box = np.array(CAPTURE_BOX_M)
     keep = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1)
-    p, cam = p[keep], cam[keep]
+    p = p[keep]
     if p.shape[0] < 2:
         return p
     pairs = cKDTree(p).query_pairs(radius_m, output_type="ndarray")
-    if pairs.size:
-        pairs = pairs[cam[pairs[:, 0]] != cam[pairs[:, 1]]]
     n = p.shape[0]
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     count, label = connected_components(g, directed=False)

@@ -118,6 +118,7 @@ def test_hello_identifies_the_box(fake: FakeBox) -> None:
     with SyncBox(fake.port, timeout_s=0.5) as box:
         assert box.identity is not None
         assert box.identity.board == "fake"
+        assert box.identity.features == ()
         assert box.identity.version == PROTOCOL_VERSION
 
 
@@ -279,6 +280,7 @@ def test_mock_syncbox_end_to_end() -> None:
     with open_mock_syncbox(seed=3) as mock, SyncBox(mock.port) as box:
         assert box.identity is not None
         assert box.identity.board == "mock"
+        assert box.identity.features == ("toggle",)
         box.set_report_interval(100)
         box.start(hz=30, width_us=100)
         reports: list[object] = []

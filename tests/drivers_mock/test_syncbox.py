@@ -46,7 +46,7 @@ def box() -> Iterator[MockSyncBox]:
 def test_hello_start_reports_status_stop(box: MockSyncBox) -> None:
     host = _Host(box.port)
     try:
-        assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock"
+        assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock toggle"
         assert host.send("REPORT 100") == "OK REPORT 100"
         assert host.send("START 30 100") == "OK START 30 100"
         time.sleep(0.45)
@@ -90,7 +90,7 @@ def test_errors(box: MockSyncBox) -> None:
         host.ser.timeout = 0.2
         assert host.send("") == ""  # empty lines are ignored: no reply
         host.ser.timeout = 1.0
-        assert host.send("\rHELLO\r") == "MOCAPRIG-SYNCBOX 1 mock"
+        assert host.send("\rHELLO\r") == "MOCAPRIG-SYNCBOX 1 mock toggle"
     finally:
         host.close()
 
@@ -113,7 +113,7 @@ def test_no_reply_fault_times_out() -> None:
         host = _Host(b.port)
         host.ser.timeout = 0.3
         try:
-            assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock"
+            assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock toggle"
             assert host.send("STATUS") == ""
         finally:
             host.close()
@@ -123,7 +123,7 @@ def test_disconnect_fault_raises_serial_exception() -> None:
     with mock_syncbox(fault="disconnect") as b:
         host = _Host(b.port)
         try:
-            assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock"
+            assert host.send("HELLO") == "MOCAPRIG-SYNCBOX 1 mock toggle"
             with pytest.raises(serial.SerialException):  # noqa: PT012
                 host.send("STATUS")
                 host.send("STATUS")
@@ -137,7 +137,7 @@ def test_entry_point_and_options() -> None:
         assert b.port.startswith("/dev/")
         with serial.serial_for_url(b.port, 115200, timeout=1.0) as ser:
             ser.write(b"HELLO\n")
-            assert ser.readline() == b"MOCAPRIG-SYNCBOX 1 mock\r\n"
+            assert ser.readline() == b"MOCAPRIG-SYNCBOX 1 mock toggle\r\n"
     with pytest.raises(ValidationError):
         mock_syncbox(fault="explode")  # type: ignore[arg-type]
 
