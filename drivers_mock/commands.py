@@ -156,7 +156,7 @@ def _simulate(args: argparse.Namespace) -> int:
 _DEMO_EPILOG = """\
 examples:
   mocaprig demo --out demo-out
-      simulate a 10 s session, record it through the drivers and the mock devices (2 D415,
+      simulate a 10 s session, record it through the drivers and the mock devices (4 D415,
       DAVIS without DVS, sync box), check the recording, read the Vicon exports back,
       compare with the truth, write demo-out/summary.png and demo-out/report.json
   mocaprig demo --scenario karate --seed 3 --seconds 6 --out karate-demo --json
@@ -190,7 +190,7 @@ def register_demo(subparsers: argparse._SubParsersAction[argparse.ArgumentParser
     )
     p.add_argument("--out", default="demo-out", metavar="DIR", help="output folder")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier demo in --out")
-    p.add_argument("--cameras", type=int, default=2, metavar="N", help="D415 recorded (default: 2)")
+    p.add_argument("--cameras", type=int, default=4, metavar="N", help="D415 recorded (default: 4)")
     p.add_argument(
         "--davis-dvs",
         action=argparse.BooleanOptionalAction,
