@@ -357,12 +357,12 @@ def _summary_figure(
     if rec is not None:
         title += (
             f"\nsession.mcap: {rec['streams']} streams, {rec['messages']} messages, "
-            f"{rec['drops']} dropped, {rec['mb']:.0f} MB; D415 sync ok: {rec.get('d415_sync_ok')}; "
-            f"DAVIS {rec.get('davis_frames')} frames, {rec.get('davis_imu_samples')} IMU, "
+            f"{rec['drops']} dropped, {rec['mb']:.0f} MB; D415 sync ok: {rec.get('d415_sync_ok')}"
+            f"\nDAVIS {rec.get('davis_frames')} frames, {rec.get('davis_imu_samples')} IMU, "
             f"{rec.get('davis_trigger_pulses')} trigger pulses "
             f"({rec.get('trigger_frame_pairs')} paired with D415 master frames)"
         )
-    fig.suptitle(title)
+    fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=90)
 
 
