@@ -89,14 +89,17 @@ def _mean_pose_reference(args: argparse.Namespace, pool: list[Any]) -> dict[str,
     rep = evaluate(
         pred, seed=args.test_seed, num_cameras=args.cameras, frames_per_take=args.frames, pool=pool
     )
-    m = rep.metrics
+    return {**_figures(rep.metrics), "test_frames": rep.metrics.frames}
+
+
+def _figures(m: Any) -> dict[str, Any]:
+    """The accuracy figures of a report's metrics (``process.metrics.PoseMetrics``)."""
     return {
         "mpjpe_mm": m.mpjpe_mm,
         "mpmpe_mm": m.mpmpe_mm,
         "pck50": m.pck50,
         "pck_auc": m.pck_auc,
         "mpjae_deg": m.mpjae_deg,
-        "test_frames": m.frames,
     }
 
 
@@ -140,11 +143,7 @@ def _run_variant(
     m = rep.metrics
     infer_ms, infer_cpu_ms = _infer_ms(pred, clouds)
     return {
-        "mpjpe_mm": m.mpjpe_mm,
-        "mpmpe_mm": m.mpmpe_mm,
-        "pck50": m.pck50,
-        "pck_auc": m.pck_auc,
-        "mpjae_deg": m.mpjae_deg,
+        **_figures(m),
         "parameters": sum(p.numel() for p in ck.model.parameters()),
         "train_seconds": train_s,
         "train_cpu_seconds": train_cpu_s,

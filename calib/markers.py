@@ -464,13 +464,7 @@ def measure_recording(
         wanted = list(keep) if frames_t_dev_ns is not None else available
     else:
         wanted = [_label(c) for c in cameras]
-    missing = [c for c in wanted if c not in available]
-    if missing:
-        msg = (
-            f"{rec.path}: no D415 stream {missing[0]!r} (looked for its ir topic); "
-            f"D415 cameras in the recording: {available or 'none'}"
-        )
-        raise CalibrationError(msg)
+    _check_cameras_present(rec, wanted, available)
 
     plans: dict[str, _Plan] = {}
     for cam in wanted:
@@ -540,6 +534,17 @@ class _Plan:
     log_hi: int = 0
 
 
+def _check_cameras_present(rec: Recording, wanted: Sequence[str], available: Sequence[str]) -> None:
+    """``CalibrationError`` naming the first of ``wanted`` that the recording lacks."""
+    missing = [c for c in wanted if c not in available]
+    if missing:
+        msg = (
+            f"{rec.path}: no D415 stream {missing[0]!r} (looked for its ir topic); "
+            f"D415 cameras in the recording: {available or 'none'}"
+        )
+        raise CalibrationError(msg)
+
+
 def _label(camera: str) -> str:
     return camera if camera.startswith("d415/") else f"d415/{camera}"
 
@@ -561,13 +566,7 @@ def frame_times(rec: Recording, *, cameras: Sequence[str] | None = None) -> dict
     """
     available = _d415_cameras(rec)
     wanted = available if cameras is None else [_label(c) for c in cameras]
-    missing = [c for c in wanted if c not in available]
-    if missing:
-        msg = (
-            f"{rec.path}: no D415 stream {missing[0]!r} (looked for its ir topic); "
-            f"D415 cameras in the recording: {available or 'none'}"
-        )
-        raise CalibrationError(msg)
+    _check_cameras_present(rec, wanted, available)
     out: dict[str, I64] = {}
     for cam in wanted:
         plan = _plan_camera(rec, cam, None, 1, None)

@@ -157,6 +157,31 @@ class ViconFileError(CalibrationError):
 # --------------------------------------------------------------------------------------------
 
 
+def _unique_labels(labels: Iterable[object], what: str) -> tuple[str, ...]:
+    """``labels`` as strings; duplicates raise ``ValidationError`` naming them."""
+    out = tuple(str(x) for x in labels)
+    if len(set(out)) != len(out):
+        dupes = sorted({x for x in out if out.count(x) > 1})
+        msg = f"{what} labels must be unique; duplicated: {dupes}"
+        raise ValidationError(msg)
+    return out
+
+
+def _positive_rate(rate_hz: float) -> float:
+    """``rate_hz`` as a finite float > 0, else ``ValidationError``."""
+    rate = float(rate_hz)
+    if not (math.isfinite(rate) and rate > 0):
+        msg = f"rate_hz must be a finite number > 0, got {rate_hz!r}"
+        raise ValidationError(msg)
+    return rate
+
+
+def _check_first_frame(first_frame: int) -> None:
+    if isinstance(first_frame, bool) or int(first_frame) != first_frame:
+        msg = f"first_frame must be an int, got {first_frame!r}"
+        raise ValidationError(msg)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class MarkerTrajectories:
     """Marker trajectories of one trial, in metres, with NaN gaps.
@@ -189,15 +214,8 @@ class MarkerTrajectories:
     metadata: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        labels = tuple(str(x) for x in self.labels)
-        if len(set(labels)) != len(labels):
-            dupes = sorted({x for x in labels if labels.count(x) > 1})
-            msg = f"marker labels must be unique; duplicated: {dupes}"
-            raise ValidationError(msg)
-        rate = float(self.rate_hz)
-        if not (math.isfinite(rate) and rate > 0):
-            msg = f"rate_hz must be a finite number > 0, got {self.rate_hz!r}"
-            raise ValidationError(msg)
+        labels = _unique_labels(self.labels, "marker")
+        rate = _positive_rate(self.rate_hz)
         pos = np.array(self.positions_m, dtype=np.float64, copy=True)
         if pos.ndim != 3 or pos.shape[1:] != (len(labels), 3):
             msg = (
@@ -221,9 +239,7 @@ class MarkerTrajectories:
         if self.source_unit not in _METRES_PER_UNIT:
             msg = f"source_unit must be one of {sorted(_METRES_PER_UNIT)}, got {self.source_unit!r}"
             raise ValidationError(msg)
-        if isinstance(self.first_frame, bool) or int(self.first_frame) != self.first_frame:
-            msg = f"first_frame must be an int, got {self.first_frame!r}"
-            raise ValidationError(msg)
+        _check_first_frame(self.first_frame)
         pos.setflags(write=False)
         res.setflags(write=False)
         object.__setattr__(self, "labels", labels)
@@ -371,15 +387,8 @@ class AnalogChannels:
     metadata: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        labels = tuple(str(x) for x in self.labels)
-        if len(set(labels)) != len(labels):
-            dupes = sorted({x for x in labels if labels.count(x) > 1})
-            msg = f"analog labels must be unique; duplicated: {dupes}"
-            raise ValidationError(msg)
-        rate = float(self.rate_hz)
-        if not (math.isfinite(rate) and rate > 0):
-            msg = f"rate_hz must be a finite number > 0, got {self.rate_hz!r}"
-            raise ValidationError(msg)
+        labels = _unique_labels(self.labels, "analog")
+        rate = _positive_rate(self.rate_hz)
         point_rate = float(self.point_rate_hz) or rate
         spf = rate / point_rate if point_rate > 0 else math.nan
         if not (math.isfinite(spf) and spf >= 1 and abs(spf - round(spf)) < 1e-6):
@@ -399,9 +408,7 @@ class AnalogChannels:
         if len(units) != len(labels):
             msg = f"{len(units)} units for {len(labels)} analog channels"
             raise ValidationError(msg)
-        if isinstance(self.first_frame, bool) or int(self.first_frame) != self.first_frame:
-            msg = f"first_frame must be an int, got {self.first_frame!r}"
-            raise ValidationError(msg)
+        _check_first_frame(self.first_frame)
         values.setflags(write=False)
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "rate_hz", rate)

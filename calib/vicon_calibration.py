@@ -1148,6 +1148,15 @@ def calibrate_vicon(
         t_ref = m.to_reference_ns(np.array([f.t_dev_ns for f in fr], dtype=np.int64))
         return _reprojection_cost(fr, poses[name], by_name[name], interp, t_ref, gate_px=3.0)
 
+    # The frames read do not change between the two passes.
+    stamps = {
+        c.name: np.array([f.t_dev_ns for f in frames_all[c.name]], dtype=np.int64) for c in cams
+    }
+    counters = {
+        c.name: np.array([f.frame_counter for f in frames_all[c.name]], dtype=np.int64)
+        for c in cams
+    }
+    ties: dict[str, _Tie] = {}
     for _ in range(2):
         own: dict[str, ClockMapping] = {}
         for cam in cams:
@@ -1157,14 +1166,6 @@ def calibrate_vicon(
             )  # fmt: skip
             clock_fits[cam.name] = (t_w, d_w, s_w)
             own[cam.name] = _line_clock(cam.name, t_w, d_w, s_w)
-        stamps = {
-            c.name: np.array([f.t_dev_ns for f in frames_all[c.name]], dtype=np.int64) for c in cams
-        }
-        counters = {
-            c.name: np.array([f.frame_counter for f in frames_all[c.name]], dtype=np.int64)
-            for c in cams
-        }
-        ties: dict[str, _Tie] = {}
         mappings, pool_notes = _pooled_clocks(
             {c.name: (stamps[c.name], counters[c.name]) for c in cams},
             clock_fits,
@@ -1181,8 +1182,7 @@ def calibrate_vicon(
                     cam.name, frames_all[cam.name], vicon_claps, traj, mappings[cam.name]
                 )
             frames = frames_all[cam.name]
-            t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.int64)
-            t_ref = mappings[cam.name].to_reference_ns(t_dev)
+            t_ref = mappings[cam.name].to_reference_ns(stamps[cam.name])
             refs = interp.at(t_ref)
             # Fast markers carry the clock's error into the pose (1 ms at 1 m/s = 1 mm): the
             # final bundle adjustment uses the markers slower than opt.max_marker_speed_m_s.
