@@ -56,12 +56,10 @@ class _MeanPose(DemocapPredictor):
     the normalisation alone, without learning anything about the pose or the heading."""
 
     def __init__(self, cfg: DemocapConfig, markers_n: np.ndarray, joints_n: np.ndarray) -> None:
-        super().__init__(Checkpoint(config=cfg, model=build_network(cfg)))
+        super().__init__(Checkpoint(config=cfg, model=build_network(cfg)), rotations=1)
         self._markers_n, self._joints_n = markers_n, joints_n
 
-    def predict_many(
-        self, clouds: Sequence[npt.ArrayLike], *, rotations: Sequence[np.ndarray] | None = None
-    ) -> list[Prediction]:
+    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
         out = []
         for c in clouds:
             _, _, norm, centre = prepare_cloud(np.asarray(c, np.float64), size_px=self.size_px)
@@ -132,7 +130,7 @@ def _run_variant(
     t0, c0 = time.monotonic(), time.process_time()
     ck = train(path, opts, config=cfg, overwrite=True)
     train_s, train_cpu_s = time.monotonic() - t0, time.process_time() - c0
-    pred = DemocapPredictor(ck)
+    pred = DemocapPredictor(ck, rotations=1)  # single shot, as the paper compares them
     rep = evaluate(
         pred,
         seed=args.test_seed,

@@ -264,8 +264,10 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  calibration: {c.get('error', 'not run')}"
         ),
         (
-            f"  DeMoCap ({d['config']}, held-out takes, 4 cameras): MPJPE {d['mpjpe_mm']:.1f} mm, "
-            f"MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 {100 * d['pck50']:.1f} %"
+            f"  DeMoCap ({d['config']}, held-out takes, 4 cameras, {d['rotations']}-turn "
+            f"ensemble): MPJPE {d['mpjpe_mm']:.1f} mm, MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 "
+            f"{100 * d['pck50']:.1f} % (single shot: {d['single_shot_mpjpe_mm']:.1f} mm, "
+            f"{100 * d['single_shot_pck50']:.1f} %)"
             if "error" not in d and d
             else f"  DeMoCap: {d.get('error', 'not run')}"
         ),

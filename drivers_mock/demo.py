@@ -83,6 +83,7 @@ def _replay_figures(
         "mpmpe_mm": m.mpmpe_mm,
         "pck50": m.pck50,
         "checkpoint": result.checkpoint,
+        "rotations": result.rotations,
         "seconds": s["seconds"],
         "timings_s": s["timings_s"],
     }

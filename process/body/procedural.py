@@ -33,6 +33,14 @@ Motions (:data:`PROCEDURAL_MOTIONS`):
 ``karate``
     From a horse-riding stance with fists chambered at the hips: fast reverse punches
     (extension ~0.15 s, peak hand speed ~5-10 m/s) and snapping front kicks.
+``freestyle``
+    No score: random key poses every 0.45-1.2 s (tempo applied), eased from one to the next
+    with minimum-jerk profiles, starting from a standing pose. Each key draws the arms, the
+    spine and the neck anywhere within their limits (pulled toward the rest pose by a random
+    factor), and the legs as one of three stances: both feet planted with a symmetric knee
+    bend, or one foot planted (bent a little, kept flat) and the other leg free within its
+    limits. It covers poses the scored actions never reach; it is made for single-frame
+    training data: feet can slide while the stance changes.
 """
 
 from __future__ import annotations
@@ -70,6 +78,7 @@ PROCEDURAL_MOTIONS: tuple[str, ...] = (
     "squat",
     "wave",
     "karate",
+    "freestyle",
 )
 
 _G_M_S2 = 9.81
@@ -373,6 +382,102 @@ def _karate(take: _Take) -> _Score:
     return _Score(a, sup, fl)
 
 
+#: Per-DOF (low, high) ranges (degrees) the free ``freestyle`` keys draw from: the limits,
+#: except where the extremes look like nothing a person does on purpose.
+_FREE_RANGE_DEG: dict[str, tuple[float, float]] = {
+    "spine_flexion": (-15.0, 60.0),
+    "spine_lateral_bend": (-25.0, 25.0),
+    "spine_axial_twist": (-30.0, 30.0),
+    "neck_flexion": (-30.0, 40.0),
+    "neck_axial_rotation": (-60.0, 60.0),
+    "shoulder_flexion": (-40.0, 175.0),
+    "shoulder_abduction": (-20.0, 170.0),
+    "shoulder_internal_rotation": (-80.0, 80.0),
+    "elbow_flexion": (0.0, 140.0),
+    "elbow_pronation": (-80.0, 75.0),
+    "hip_flexion": (-25.0, 110.0),
+    "hip_abduction": (-15.0, 40.0),
+    "hip_internal_rotation": (-40.0, 30.0),
+    "knee_flexion": (0.0, 130.0),
+    "ankle_dorsiflexion": (-40.0, 15.0),
+    "ankle_inversion": (-15.0, 20.0),
+}
+
+
+def _free_angle(rng: np.random.Generator, dof: str, pull: float) -> float:
+    lo, hi = _FREE_RANGE_DEG[dof]
+    return pull * float(rng.uniform(lo, hi))
+
+
+def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
+    """One random key: angles (27,) degrees and support weights (right, left)."""
+    a = np.zeros((1, NUM_DOF))
+    pull = float(rng.uniform(0.3, 1.0))
+    for dof in ("spine_flexion", "spine_lateral_bend", "spine_axial_twist"):
+        a[0, _DOF[dof]] = _free_angle(rng, dof, 0.7 * pull)
+    for dof in ("neck_flexion", "neck_axial_rotation"):
+        a[0, _DOF[dof]] = _free_angle(rng, dof, pull)
+    for side in ("left", "right"):
+        arm = float(rng.uniform(0.3, 1.0))
+        for dof in (
+            "shoulder_flexion",
+            "shoulder_abduction",
+            "shoulder_internal_rotation",
+            "elbow_flexion",
+            "elbow_pronation",
+        ):
+            _side(a, side, dof, _free_angle(rng, dof, arm))
+    stance = int(rng.integers(3))  # 0: both feet planted, 1: right planted, 2: left planted
+    if stance == 0:
+        knee = float(rng.uniform(0.0, 110.0)) * float(rng.uniform(0.0, 1.0))
+        _stance_feet(a, knee, 0.8 * knee)
+        _both(a, "hip_abduction", float(rng.uniform(-3.0, 15.0)))
+        support = np.array([0.5, 0.5])
+    else:
+        planted, free = ("right", "left") if stance == 1 else ("left", "right")
+        knee = float(rng.uniform(0.0, 35.0))
+        hip = 0.8 * knee
+        _side(a, planted, "knee_flexion", knee)
+        _side(a, planted, "hip_flexion", hip)
+        _side(a, planted, "ankle_dorsiflexion", knee - hip)
+        _side(a, planted, "hip_abduction", float(rng.uniform(-5.0, 10.0)))
+        leg = float(rng.uniform(0.3, 1.0))
+        for dof in (
+            "hip_flexion",
+            "hip_abduction",
+            "hip_internal_rotation",
+            "knee_flexion",
+            "ankle_dorsiflexion",
+            "ankle_inversion",
+        ):
+            _side(a, free, dof, _free_angle(rng, dof, leg))
+        support = np.array([1.0, 0.0]) if stance == 1 else np.array([0.0, 1.0])
+    return a[0], support
+
+
+def _freestyle(take: _Take) -> _Score:
+    a, sup, fl = _zeros(take)
+    rng = take.rng
+    end = float(take.t[-1]) if take.t.size else 0.0
+    times, keys, supports = [0.0], [np.zeros(NUM_DOF)], [np.array([0.5, 0.5])]
+    while times[-1] <= end:
+        times.append(times[-1] + float(rng.uniform(0.45, 1.2)) / take.tempo)
+        key, support = _freestyle_key(rng)
+        keys.append(take.amp * key)
+        supports.append(support)
+    k = np.searchsorted(np.asarray(times), take.t, side="right") - 1
+    t0 = np.asarray(times)[k]
+    t1 = np.asarray(times)[k + 1]
+    w = _ease((take.t - t0) / (t1 - t0))[:, None]
+    key_arr, sup_arr = np.asarray(keys), np.asarray(supports)
+    a += (1.0 - w) * key_arr[k] + w * key_arr[k + 1]
+    # Between keys the weight lies on every foot planted at either end (both when the planted
+    # foot changes), so the root follows the feet that carry it.
+    both = np.maximum(sup_arr[k], sup_arr[k + 1])
+    sup[:] = both / both.sum(axis=1, keepdims=True)
+    return _Score(a, sup, fl, noise_deg=1.0)
+
+
 _GENERATORS: dict[str, Callable[[_Take], _Score]] = {
     "t_pose": _t_pose,
     "clap": _clap,
@@ -381,6 +486,7 @@ _GENERATORS: dict[str, Callable[[_Take], _Score]] = {
     "squat": _squat,
     "wave": _wave,
     "karate": _karate,
+    "freestyle": _freestyle,
 }
 
 

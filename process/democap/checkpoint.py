@@ -4,7 +4,8 @@ A checkpoint is a ``torch.save`` dict holding ``format`` (``"mocaprig-democap"``
 ``format_version``, the config (:meth:`DemocapConfig.to_dict`), the marker and joint names in
 output order, the model state (of the config's ``variant``; a config without the key is
 markers-to-pose) and, for resuming, the optimiser and scheduler state, the
-number of finished epochs, the seed and the loss history. Loading checks all of them against
+number of finished epochs, the seed and the loss history, and ``train_motions``, the names of
+the BVH clips in the training pool (absent in older files: none). Loading checks all of them against
 this code and raises :class:`acquire.errors.ProcessingError` naming what differs.
 """
 
@@ -47,6 +48,8 @@ class Checkpoint:
     optimizer_state: dict[str, Any] | None = None
     scheduler_state: dict[str, Any] | None = None
     history: list[dict[str, float]] = field(default_factory=list)
+    #: names of the BVH clips trained on (an evaluation on one of them is not held out)
+    train_motions: list[str] = field(default_factory=list)
 
 
 def save_checkpoint(ckpt: Checkpoint, path: Path) -> None:
@@ -63,6 +66,7 @@ def save_checkpoint(ckpt: Checkpoint, path: Path) -> None:
         "epoch": ckpt.epoch,
         "seed": ckpt.seed,
         "history": ckpt.history,
+        "train_motions": list(ckpt.train_motions),
     }
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
@@ -119,4 +123,5 @@ def load_checkpoint(path: Path) -> Checkpoint:
         optimizer_state=data.get("optimizer"),
         scheduler_state=data.get("scheduler"),
         history=list(data.get("history", [])),
+        train_motions=[str(n) for n in data.get("train_motions", [])],
     )

@@ -46,6 +46,11 @@ examples:
   mocaprig democap train --out lite.pt --epochs 80 --resume
   mocaprig democap train --config lite --out lite.pt --overwrite --max-minutes 30
   mocaprig democap train --variant markers+pose --out mp.pt --epochs 4 --threads 1
+  mocaprig democap train --config lite --out mine.pt --bvh walk.bvh dance.bvh --epochs 40
+
+--bvh adds motion-capture clips to the training pool (retargeted onto --bvh-subjects bodies
+each; a third of the procedural takes are already random key poses). The checkpoint keeps the
+clips' names, and `democap eval --motion` flags a clip that was trained on.
 
 --variant picks the network of a new run: markers-to-pose (DeMoCap, the default) or one of the
 baselines of paper Table 2 (pose: joint heat maps only; markers+pose: both super-stages
@@ -65,6 +70,7 @@ examples:
   mocaprig democap eval --ckpt lite.pt --cameras 4 --json
   mocaprig democap eval --all-cameras --json        4-, 3- and 2-camera figures
   mocaprig democap eval --motion ../shared/data/motion/cmu_131_02_scaled.bvh
+  mocaprig democap eval --freestyle --json          random key poses never trained on
 """
 
 _RUN_EPILOG = """\
@@ -123,6 +129,14 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     tr.add_argument("--batch-size", type=int, default=None, help="override the config")
     tr.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     tr.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time")
+    tr.add_argument(
+        "--bvh",
+        nargs="+",
+        default=(),
+        metavar="FILE.bvh",
+        help="BVH clips added to the training pool (a resumed run needs the same ones)",
+    )
+    tr.add_argument("--bvh-subjects", type=int, default=4, help="bodies per BVH clip")
     add_json_flag(tr)
     tr.set_defaults(func=democap_train)
 
@@ -135,11 +149,17 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     )
     ev.add_argument("--ckpt", default=None, help="checkpoint (default: the committed lite one)")
     ev.add_argument("--motion", default=None, metavar="FILE.bvh", help="test on this BVH motion")
+    ev.add_argument(
+        "--freestyle",
+        action="store_true",
+        help="test on held-out random key poses instead of the scored actions",
+    )
     ev.add_argument("--seed", type=int, default=0, help="seed of the test set")
     ev.add_argument("--cameras", type=int, choices=(2, 3, 4), default=4, help="D415s used")
     ev.add_argument("--all-cameras", action="store_true", help="report 4, 3 and 2 cameras")
     ev.add_argument("--subjects", type=int, default=1, help="subjects (rounds of the actions)")
     ev.add_argument("--frames", type=int, default=40, help="frames per take")
+    _add_rotations(ev)
     add_json_flag(ev)
     ev.set_defaults(func=democap_eval)
 
@@ -164,8 +184,20 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     rn.add_argument(
         "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
     )
+    _add_rotations(rn)
     add_json_flag(rn)
     rn.set_defaults(func=democap_run)
+
+
+def _add_rotations(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rotations",
+        type=int,
+        default=3,
+        metavar="K",
+        help="rotation ensemble size: the cloud turned by k*180/K deg about the vertical, "
+        "K network passes, median (default: %(default)s; 1 = the paper's single shot)",
+    )
 
 
 def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
@@ -201,6 +233,9 @@ def democap_train(args: argparse.Namespace) -> int:
     config = config_by_name(args.config)
     if args.variant is not None:
         config = dataclasses.replace(config, variant=args.variant)
+    from process.body import read_bvh
+
+    motions = tuple(read_bvh(p) for p in args.bvh)
 
     opts = TrainOptions(
         epochs=args.epochs,
@@ -210,6 +245,8 @@ def democap_train(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         threads=args.threads,
         max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes,
+        motions=motions,
+        motion_subjects=args.bvh_subjects,
     )
     ckpt = train(
         Path(args.out),
@@ -227,6 +264,7 @@ def democap_train(args: argparse.Namespace) -> int:
         "epochs": ckpt.epoch,
         "loss": last.get("loss"),
         "val_mpjpe_mm": last.get("val_mpjpe_mm"),
+        "train_motions": ckpt.train_motions,
     }
     if args.json:
         emit_json(summary)
@@ -245,10 +283,20 @@ def democap_eval(args: argparse.Namespace) -> int:
     from process.democap.evaluate import evaluate, held_out_pool
     from process.democap.infer import DemocapPredictor
 
-    predictor = DemocapPredictor(None if args.ckpt is None else Path(args.ckpt))
+    predictor = DemocapPredictor(
+        None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
+    )
     clip = None if args.motion is None else read_bvh(args.motion)
+    seen = False
+    if clip is not None and clip.name in predictor.checkpoint.train_motions:
+        seen = True
+        print(
+            f"warning: {args.motion} (clip {clip.name!r}) was in this checkpoint's training "
+            "pool; the figures are not held out",
+            file=sys.stderr,
+        )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
-    pool = held_out_pool(args.seed, motion=clip, subjects=args.subjects)
+    pool = held_out_pool(args.seed, motion=clip, subjects=args.subjects, freestyle=args.freestyle)
     reports = {}
     for k in cams:
         rep = evaluate(
@@ -260,7 +308,10 @@ def democap_eval(args: argparse.Namespace) -> int:
         "checkpoint": str(args.ckpt or "committed lite"),
         "config": predictor.checkpoint.config.name,
         "variant": predictor.checkpoint.config.variant,
-        "motion": args.motion or "procedural (held-out)",
+        "motion": args.motion
+        or ("freestyle (held-out)" if args.freestyle else "procedural (held-out)"),
+        "motion_trained_on": seen,
+        "rotations": predictor.rotations,
         "seed": args.seed,
         **main,
     }
@@ -305,7 +356,9 @@ def democap_run(args: argparse.Namespace) -> int:
         out=args.out,
         c3d=args.c3d,
         csv=args.csv,
-        predictor=DemocapPredictor(None if args.ckpt is None else Path(args.ckpt)),
+        predictor=DemocapPredictor(
+            None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
+        ),
         every=args.every,
         overwrite=args.overwrite,
         crop_box_m=None if args.no_crop else DEFAULT_CROP_BOX_M,

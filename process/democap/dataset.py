@@ -3,9 +3,13 @@
 A pool is a list of takes (:class:`process.democap.simdata.PoseFrames`) at 30 Hz, each a new
 subject (:meth:`BodyShape.sample`, marker placement jitter σ = 1 cm), a procedural motion with
 new take variation and, for training, a constant random offset on every joint angle (up to
-±12°, clipped to the limits) so the poses are not limited to the seven scores. The training
+±12°, clipped to the limits) so the poses are not limited to the six scores; a third of the
+training takes are ``freestyle`` (random key poses within the joint limits,
+:mod:`process.body.procedural`). The training
 and held-out pools come from different seed streams, so held-out bodies, placements and takes
-are never seen in training; a BVH clip (``--motion``) gives an action never trained on.
+are never seen in training; a BVH clip (``--motion``) gives an action never trained on. BVH
+clips can join the training pool too (``democap train --bvh``), on bodies of their own seed
+stream; the checkpoint lists their names so an evaluation on one of them is flagged.
 
 A sample: one frame of one take, the actor turned to a random heading and moved up to 0.6 m
 off the centre, seen by a freshly sampled rig (:func:`simdata.sample_rig`), fused
@@ -15,6 +19,7 @@ off the centre, seen by a freshly sampled rig (:func:`simdata.sample_rig`), fuse
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -58,10 +63,18 @@ __all__ = [
 FloatArray = npt.NDArray[np.float64]
 Split = Literal["train", "test"]
 
-#: Procedural actions used in both pools (the static T-pose is left out: it adds nothing).
-TRAIN_ACTIONS: tuple[str, ...] = tuple(m for m in PROCEDURAL_MOTIONS if m != "t_pose")
+#: The scored procedural actions, used in both pools (the static T-pose is left out: it adds
+#: nothing; ``freestyle`` has no score and is training-only).
+TRAIN_ACTIONS: tuple[str, ...] = tuple(
+    m for m in PROCEDURAL_MOTIONS if m not in ("t_pose", "freestyle")
+)
+#: The training pool's cycle: the scored actions, then random key poses (``freestyle``) for a
+#: third of the takes, so the network sees poses beyond the scores.
+_TRAIN_CYCLE: tuple[str, ...] = (*TRAIN_ACTIONS, *(("freestyle",) * (len(TRAIN_ACTIONS) // 2)))
 RATE_HZ = 30.0
 _SPLIT_KEY = {"train": 0, "test": 1}
+#: Seed streams of BVH takes (the held-out one predates the training one).
+_BVH_KEY = {"train": 3, "test": 2}
 
 
 def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> Motion:
@@ -71,12 +84,24 @@ def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> 
     return Motion(motion.name, motion.rate_hz, poses)
 
 
-def make_pool(seed: int, split: Split, *, takes: int, seconds: float = 6.0) -> list[PoseFrames]:
-    """``takes`` takes cycling through :data:`TRAIN_ACTIONS`, from the ``split`` seed stream.
+def make_pool(
+    seed: int,
+    split: Split,
+    *,
+    takes: int,
+    seconds: float = 6.0,
+    actions: Sequence[str] | None = None,
+) -> list[PoseFrames]:
+    """``takes`` takes from the ``split`` seed stream, cycling through :data:`TRAIN_ACTIONS`
+    (``"train"``: then three ``freestyle`` takes of random key poses per cycle) or through
+    ``actions`` (procedural motion names) when given.
 
     Raises:
-        ValidationError: ``takes`` < 1 or an unknown split.
+        ValidationError: ``takes`` < 1, an unknown split or an unknown or empty action list.
     """
+    if actions is not None and (not actions or any(a not in PROCEDURAL_MOTIONS for a in actions)):
+        msg = f"actions must be procedural motions ({', '.join(PROCEDURAL_MOTIONS)}), got {actions}"
+        raise ValidationError(msg)
     if split not in _SPLIT_KEY:
         msg = f"split must be 'train' or 'test', got {split!r}"
         raise ValidationError(msg)
@@ -88,7 +113,8 @@ def make_pool(seed: int, split: Split, *, takes: int, seconds: float = 6.0) -> l
         rng = np.random.default_rng([seed, _SPLIT_KEY[split], k])
         shape = BodyShape.sample(rng)
         markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
-        action = TRAIN_ACTIONS[k % len(TRAIN_ACTIONS)]
+        cycle = actions or (_TRAIN_CYCLE if split == "train" else TRAIN_ACTIONS)
+        action = cycle[k % len(cycle)]
         motion = make_motion(action, seconds=seconds, rng=rng, rate_hz=RATE_HZ, shape=shape)
         if split == "train":
             motion = _offset_motion(motion, rng, 12.0)
@@ -96,15 +122,28 @@ def make_pool(seed: int, split: Split, *, takes: int, seconds: float = 6.0) -> l
     return pool
 
 
-def pool_from_bvh(clip: BvhClip, seed: int, *, subjects: int = 1) -> list[PoseFrames]:
-    """Held-out takes of a BVH clip (e.g. one never trained on) on ``subjects`` new bodies:
-    the clip is thinned to about 30 Hz and retargeted onto each body
-    (:func:`process.body.retarget_bvh`)."""
+def pool_from_bvh(
+    clip: BvhClip, seed: int, *, subjects: int = 1, split: Split = "test"
+) -> list[PoseFrames]:
+    """Takes of a BVH clip on ``subjects`` new bodies: the clip is thinned to about 30 Hz and
+    retargeted onto each body (:func:`process.body.retarget_bvh`). ``"test"``: held-out
+    bodies (e.g. for a clip never trained on); ``"train"``: bodies of another seed stream, for
+    clips added to the training pool.
+
+    Raises:
+        ValidationError: ``subjects`` < 1 or an unknown split.
+    """
+    if split not in _SPLIT_KEY:
+        msg = f"split must be 'train' or 'test', got {split!r}"
+        raise ValidationError(msg)
+    if subjects < 1:
+        msg = f"subjects must be >= 1, got {subjects}"
+        raise ValidationError(msg)
     step = max(1, round(1.0 / (clip.frame_time_s * RATE_HZ)))
     thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
     out = []
     for k in range(subjects):
-        rng = np.random.default_rng([seed, 2, k])
+        rng = np.random.default_rng([seed, _BVH_KEY[split], k])
         shape = BodyShape.sample(rng)
         markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
         motion = retarget_bvh(thin, shape)

@@ -119,10 +119,21 @@ class EvalReport:
 
 
 def held_out_pool(
-    seed: int, *, motion: BvhClip | None = None, subjects: int = 1
+    seed: int,
+    *,
+    motion: BvhClip | None = None,
+    subjects: int = 1,
+    freestyle: bool = False,
 ) -> list[PoseFrames]:
     """The held-out takes :func:`evaluate` uses: ``subjects`` rounds of the six procedural
-    actions (4 s each, a new subject per take), or ``motion`` on ``subjects`` new bodies."""
+    actions (4 s each, a new subject per take), or ``motion`` on ``subjects`` new bodies, or
+    (``freestyle``) ``subjects`` × 6 takes of random key poses from the test stream (poses
+    never trained on: the training takes draw other keys)."""
+    if freestyle and motion is not None:
+        msg = "pass either a BVH motion or freestyle, not both"
+        raise ValidationError(msg)
+    if freestyle:
+        return make_pool(seed, "test", takes=subjects * 6, seconds=4.0, actions=("freestyle",))
     if motion is None:
         return make_pool(seed, "test", takes=subjects * 6, seconds=4.0)
     return pool_from_bvh(motion, seed, subjects=subjects)

@@ -225,6 +225,7 @@ class ReplayResult:
         reference_clock: The calibration's reference clock (``"vicon"``).
         world_frame: The calibration's world frame.
         checkpoint: ``"<config> (<epochs> epochs)"`` of the network used.
+        rotations: size of the rotation ensemble used (1: single shot).
         timings_s: Wall seconds per stage (``measure_s``, ``network_s``, ``write_s``,
             ``total_s``).
     """
@@ -245,6 +246,7 @@ class ReplayResult:
     reference_clock: str = "vicon"
     world_frame: str = "vicon"
     checkpoint: str = ""
+    rotations: int = 1
     timings_s: Mapping[str, float] = field(default_factory=dict)
 
     @property
@@ -281,6 +283,7 @@ class ReplayResult:
             "reference_clock": self.reference_clock,
             "world_frame": self.world_frame,
             "checkpoint": self.checkpoint,
+            "rotations": self.rotations,
             "outputs": {k: str(v) for k, v in self.outputs.items()},
             "seconds": self.timings_s.get("total_s"),
             "timings_s": dict(self.timings_s),
@@ -539,6 +542,7 @@ def run_replay(
         reference_clock=cal.reference_clock,
         world_frame=cal.world_frame,
         checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
+        rotations=pred.rotations,
     )
     t0 = time.monotonic()
     write_scene_mcap(result, paths["mcap"], clouds=clouds, calibration=cal, overwrite=overwrite)
@@ -839,6 +843,7 @@ def _metadata(result: ReplayResult) -> dict[str, str]:
         "reference_clock": result.reference_clock,
         "world_frame": result.world_frame,
         "checkpoint": result.checkpoint,
+        "rotations": str(result.rotations),
         "instants_by_camera_count": ",".join(
             f"{k}:{v}" for k, v in result.camera_histogram.items()
         ),

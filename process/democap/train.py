@@ -18,9 +18,10 @@ import numpy as np
 import torch
 
 from acquire.errors import ValidationError
+from process.body import BvhClip
 from process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from process.democap.config import DemocapConfig
-from process.democap.dataset import make_batch, make_pool, make_sample
+from process.democap.dataset import make_batch, make_pool, make_sample, pool_from_bvh
 from process.democap.model import DemocapModel, build_network, democap_loss
 
 __all__ = ["TrainOptions", "train"]
@@ -40,6 +41,10 @@ class TrainOptions:
         batch_size: overrides the config's value when set.
         threads: torch CPU threads.
         max_seconds: stop after the epoch that passes this wall time (None: no limit).
+        motions: BVH clips added to the training pool (each on ``motion_subjects`` bodies of
+            the training stream); their names are stored in the checkpoint. A resumed run
+            must be given the same clips as before, or more.
+        motion_subjects: bodies per BVH clip.
     """
 
     epochs: int
@@ -49,6 +54,8 @@ class TrainOptions:
     batch_size: int | None = None
     threads: int = 2
     max_seconds: float | None = None
+    motions: tuple[BvhClip, ...] = ()
+    motion_subjects: int = 4
 
 
 def _optimizer(
@@ -109,6 +116,20 @@ def train(
     if ckpt.scheduler_state is not None:
         sched.load_state_dict(ckpt.scheduler_state)
     pool = make_pool(ckpt.seed, "train", takes=options.takes)
+    names = [c.name for c in options.motions]
+    if len(set(names)) != len(names):
+        msg = f"BVH clips must have distinct names, got {names}"
+        raise ValidationError(msg)
+    dropped = sorted(set(ckpt.train_motions) - set(names))
+    if dropped:
+        msg = (
+            f"the checkpoint {out} was trained with BVH clip(s) {dropped}; pass them again "
+            "to resume (the training pool must not lose motions mid-run)"
+        )
+        raise ValidationError(msg)
+    for clip in options.motions:
+        pool += pool_from_bvh(clip, ckpt.seed, subjects=options.motion_subjects, split="train")
+    ckpt.train_motions = sorted(set(ckpt.train_motions) | set(names))
     val = _validation_set(ckpt.seed, cfg.input_px)
     todo = max(0, options.epochs - ckpt.epoch)
     total = todo * steps

@@ -25,8 +25,8 @@ from process.body.bvh import (
 )
 from process.body.kinematics import forward_kinematics, within_limits
 from process.body.procedural import floor_clearance_m, make_motion
-from process.body.shape import BodyShape, rest_offsets
-from process.body.skeleton import JOINTS, PARENTS
+from process.body.shape import BodyShape
+from tests.process.body._body_helpers import BVH_TO_BODY, motion_as_bvh
 
 
 def _chain_bvh(order_root: str, order_mid: str, frames: list[list[float]]) -> str:
@@ -254,39 +254,7 @@ def test_cmu_131_01_reads_995_frames_at_120_hz(shared_data: Path) -> None:
 # --------------------------------------------------------------------------------------------
 # Retargeting
 
-_C = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # BVH (Y up) -> ours
-
-
-def _our_motion_as_bvh(poses: np.ndarray, shape: BodyShape, rate_hz: float) -> BvhClip:
-    """Write our own skeleton and poses as a Y-up BVH clip (CMU axes), ZXY channels."""
-    kin = forward_kinematics(poses, shape)
-    offsets = rest_offsets(shape) @ _C  # rows: C^T offset
-    cols = []
-    for j, p in enumerate(PARENTS):
-        r = (
-            kin.rotations[:, j]
-            if p < 0
-            else np.swapaxes(kin.rotations[:, p], 1, 2) @ kin.rotations[:, j]
-        )
-        r_bvh = _C.T @ r @ _C
-        euler = Rotation.from_matrix(r_bvh).as_euler("ZXY", degrees=True)
-        if p < 0:
-            cols.append(kin.positions_m[:, 0] @ _C)
-        cols.append(euler)
-    channels = tuple(
-        (("Xposition", "Yposition", "Zposition") if p < 0 else ())
-        + ("Zrotation", "Xrotation", "Yrotation")
-        for p in PARENTS
-    )
-    return BvhClip(
-        name="ours",
-        joint_names=JOINTS,
-        parents=PARENTS,
-        offsets_m=offsets,
-        channels=channels,
-        frames=np.concatenate(cols, axis=1),
-        frame_time_s=1.0 / rate_hz,
-    )
+_C = BVH_TO_BODY
 
 
 def test_our_skeleton_round_trips_through_bvh_positions() -> None:
@@ -294,7 +262,7 @@ def test_our_skeleton_round_trips_through_bvh_positions() -> None:
     motion = make_motion(
         "karate", seconds=0.5, rng=np.random.default_rng(0), rate_hz=60.0, shape=shape
     )
-    clip = _our_motion_as_bvh(np.array(motion.poses), shape, 60.0)
+    clip = motion_as_bvh(np.array(motion.poses), shape, 60.0)
     got = bvh_global_positions(clip) @ _C.T
     want = forward_kinematics(motion.poses, shape).positions_m
     np.testing.assert_allclose(got, want, atol=1e-9)
@@ -305,7 +273,7 @@ def test_retarget_recovers_our_own_motion() -> None:
     motion = make_motion(
         "punch_kick", seconds=1.0, rng=np.random.default_rng(1), rate_hz=30.0, shape=shape
     )
-    clip = _our_motion_as_bvh(np.array(motion.poses), shape, 30.0)
+    clip = motion_as_bvh(np.array(motion.poses), shape, 30.0)
     ends = {f"{s}{e}": f"{s}{e}" for s in ("Left", "Right") for e in ("HandEnd", "ToeEnd")}
     got = retarget_bvh(clip, shape, joint_map={"HeadEnd": "HeadEnd", **ends}, iterations=100)
     assert got.num_frames == motion.num_frames

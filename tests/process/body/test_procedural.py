@@ -126,3 +126,22 @@ def test_session_starts_with_a_static_t_pose_and_keeps_feet_up() -> None:
     assert np.ptp(start, axis=0).max() < 0.02  # static start
     step = np.linalg.norm(np.diff(m.poses[:, 3:6], axis=0), axis=-1)
     assert step.max() < 2.0 / RATE  # the root never jumps (< 2 m/s)
+
+
+def test_freestyle_reaches_poses_beyond_the_scored_actions() -> None:
+    hand_over_head, foot_lift, crouch = [], [], []
+    for seed in range(3):
+        m = make_motion("freestyle", seconds=6.0, rng=np.random.default_rng(seed), rate_hz=RATE)
+        p = forward_kinematics(m.poses, SHAPE).positions_m
+        j = JOINT_INDEX
+        hands = np.maximum(p[:, j["RightHand"], 2], p[:, j["LeftHand"], 2])
+        hand_over_head.append(float(np.max(hands - p[:, j["Head"], 2])))
+        feet = p[:, [j["RightFoot"], j["LeftFoot"]], 2].max(axis=1)
+        foot_lift.append(float(feet.max() - SHAPE.ankle_height_m))
+        crouch.append(float(p[0, j["Hips"], 2] - p[:, j["Hips"], 2].min()))
+        np.testing.assert_allclose(m.poses[0, 6:], 0.0, atol=np.deg2rad(5.0))  # starts standing
+    # every take lifts a hand over the head and a foot off the floor at some point, and one
+    # of three takes crouches by 5 cm or more: none of the scored actions does all of that
+    assert min(hand_over_head) > 0.0
+    assert min(foot_lift) > 0.1
+    assert max(crouch) > 0.05

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from acquire.errors import ProcessingError, ValidationError
+from process.body import BodyShape, BvhClip, make_motion
 from process.democap.checkpoint import (
     DEFAULT_CHECKPOINT,
     FORMAT_VERSION,
@@ -16,9 +17,16 @@ from process.democap.checkpoint import (
     save_checkpoint,
 )
 from process.democap.config import DemocapConfig
-from process.democap.dataset import make_batch, make_pool, make_sample
+from process.democap.dataset import (
+    TRAIN_ACTIONS,
+    make_batch,
+    make_pool,
+    make_sample,
+    pool_from_bvh,
+)
 from process.democap.infer import DemocapPredictor
 from process.democap.train import TrainOptions, train
+from tests.process.body._body_helpers import motion_as_bvh
 
 _OPTS = TrainOptions(epochs=2, seed=3, takes=2, threads=1)
 
@@ -122,3 +130,37 @@ def test_committed_checkpoint_loads_with_lite_config() -> None:
     assert ck.config.name == "lite"
     assert ck.epoch >= 1
     assert DEFAULT_CHECKPOINT.stat().st_size < 8 * 2**20
+
+
+def test_training_pool_mixes_random_key_poses_and_the_test_pool_does_not() -> None:
+    train_actions = [t.action for t in make_pool(0, "train", takes=9, seconds=0.5)]
+    test_actions = [t.action for t in make_pool(0, "test", takes=9, seconds=0.5)]
+    assert train_actions[:6] == list(TRAIN_ACTIONS)
+    assert train_actions[6:] == ["freestyle"] * 3
+    assert "freestyle" not in test_actions
+    assert set(test_actions) == set(TRAIN_ACTIONS)
+
+
+def _clip(name: str) -> BvhClip:
+    shape = BodyShape.from_height(1.7)
+    motion = make_motion("wave", seconds=1.0, rng=np.random.default_rng(1), rate_hz=60.0)
+    return motion_as_bvh(np.array(motion.poses), shape, 60.0, name=name)
+
+
+def test_bvh_clips_join_the_training_pool_and_the_checkpoint_names_them(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    clip = _clip("kata")
+    out = tmp_path / "bvh.pt"
+    opts = TrainOptions(epochs=1, seed=0, takes=2, threads=1, motions=(clip,), motion_subjects=2)
+    ck = train(out, opts, config=tiny_config)
+    assert ck.train_motions == ["kata"]
+    assert load_checkpoint(out).train_motions == ["kata"]
+    # a resumed run may not silently lose a clip it was trained with
+    with pytest.raises(ValidationError, match="kata"):
+        train(out, TrainOptions(epochs=2, seed=0, takes=2, threads=1), resume=True)
+    # training bodies of a clip are not the held-out bodies of the same clip
+    tr = pool_from_bvh(clip, 0, subjects=2, split="train")
+    te = pool_from_bvh(clip, 0, subjects=2, split="test")
+    assert tr[0].action == te[0].action == "kata"
+    assert not np.allclose(tr[0].markers_m, te[0].markers_m)

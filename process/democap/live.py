@@ -1,0 +1,685 @@
+"""Live DeMoCap: one synchronised set of D415 IR + depth frames -> labelled markers + joints.
+
+:class:`LivePipeline` takes, per rig instant, one ``(IR, depth)`` pair per camera (the frames
+of the hardware-synchronised D415s that exposed together) and runs the replay's stages
+(:mod:`process.democap.replay`) on them, with the same functions and parameters so live and
+replay give the same clouds:
+
+1. **measure**, per camera (:func:`calib.markers.measure_frame`): IR blobs, robust depth,
+   deprojection into the camera frame;
+2. **merge**: camera -> world (:func:`calib.markers.to_world`), the capture-box crop of the
+   training data (:func:`calib.markers.crop_volume` with
+   :data:`~process.democap.replay.DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
+   (:func:`calib.markers.merge_views`, views in the pipeline's camera order;
+   :func:`cameras_from_calibration` sorts them by name, as the replay does);
+3. **predict**: :meth:`DemocapPredictor.predict_many` on the one cloud (whatever stages the
+   predictor has: render, network, decode...; its ``last_timings_s`` are copied into the
+   result's timings).
+
+:meth:`LivePipeline.process` runs one set (the cameras measured on ``workers`` threads, the
+calling thread included: OpenCV and most of numpy release the GIL). :meth:`LivePipeline.stream`
+runs an iterable of sets as a two-stage pipeline: a producer thread measures and merges set
+k + 1 while the calling thread runs the network on set k (bounded queue, order kept, the first
+error of either stage raised in the caller at its position, the producer stopped when the
+caller stops iterating). The pipeline owns a thread pool: use it as a context manager (or call
+:meth:`LivePipeline.close`).
+
+A camera whose frame is missing (``None`` in the set: a dropped frame) is left out of that
+instant, as in the replay. An instant whose fused cloud has fewer than ``min_points`` points
+gets no prediction (``LiveResult.prediction`` is None) rather than an error, so one empty
+instant does not end a stream.
+
+Torch runs with whatever ``torch.get_num_threads()`` the caller set; nothing here changes
+global state (torch threads, OpenCV threads).
+
+Units: metres (world frame of the cameras' ``T_world_cam``), milliseconds for timings.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Final, Protocol, TypeAlias, cast
+
+import numpy as np
+import numpy.typing as npt
+
+from acquire.check import check_finite, check_shape
+from acquire.errors import CalibrationError, ProcessingError, ValidationError
+from calib.calibration import Calibration, cameras_of_kind
+from calib.markers import (
+    DEFAULT_MAX_AREA_PX,
+    DEFAULT_MIN_AREA_PX,
+    DEFAULT_THRESHOLD,
+    MarkerFrame,
+    crop_volume,
+    measure_frame,
+    merge_views,
+    to_world,
+)
+from process.democap.checkpoint import Checkpoint
+from process.democap.infer import DemocapPredictor, Prediction
+from process.democap.simdata import CAPTURE_BOX_M
+
+__all__ = [
+    "DEFAULT_MERGE_RADIUS_M",
+    "DEFAULT_WORKERS",
+    "LIVE_ROTATIONS",
+    "CloudPredictor",
+    "FramePair",
+    "FrameSet",
+    "LiveCamera",
+    "LivePipeline",
+    "LiveResult",
+    "cameras_from_calibration",
+    "live_predictor",
+]
+
+_log = logging.getLogger(__name__)
+
+F64 = npt.NDArray[np.float64]
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+_Pair = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16]]
+
+#: The replay's merge radius (m).
+DEFAULT_MERGE_RADIUS_M: Final = 0.010
+#: Threads measuring one set's cameras by default: 1, so that in :meth:`LivePipeline.stream`
+#: on a 2-core machine one core measures while the other runs the network (a second
+#: measuring thread would take the network's core; it shortens :meth:`LivePipeline.process`
+#: only where a core is idle).
+DEFAULT_WORKERS: Final = 1
+#: Rotation-ensemble size for live use (:func:`live_predictor`): two turns, their network
+#: passes on two threads, keep a 2-core machine above 30 fps (the offline default,
+#: :data:`~process.democap.infer.DEFAULT_ROTATIONS`, does not: docs/democap.md, "Speed").
+LIVE_ROTATIONS: Final = 2
+#: How long closing a stream waits for its producer thread (s) before leaving it behind.
+_JOIN_TIMEOUT_S: Final = 10.0
+#: How often a producer blocked on a full queue checks whether it should stop (s).
+_POLL_S: Final = 0.05
+
+#: One camera's frame: ``(ir (H, W) uint8, depth (H, W) uint16)``.
+FramePair: TypeAlias = tuple[npt.ArrayLike, npt.ArrayLike]
+#: One rig instant: a pair per camera in the pipeline's camera order, or by camera name;
+#: ``None`` for a camera whose frame was dropped.
+FrameSet: TypeAlias = Sequence[FramePair | None] | Mapping[str, FramePair | None]
+
+
+class CloudPredictor(Protocol):
+    """What the pipeline needs of a predictor (:class:`~process.democap.infer.DemocapPredictor`
+    is one); an attribute ``last_timings_s`` (stage -> s), when present, is read after each
+    call."""
+
+    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
+        """Fused world clouds ``(N, 3)`` (m) -> one :class:`Prediction` each."""
+        ...
+
+
+def live_predictor(
+    checkpoint: Checkpoint | None = None, *, rotations: int = LIVE_ROTATIONS
+) -> DemocapPredictor:
+    """The predictor for live use: :data:`LIVE_ROTATIONS` turns, one network pass per thread
+    (``workers`` = ``rotations``); ``checkpoint`` None is the committed ``lite`` one.
+
+    Raises:
+        ProcessingError: the checkpoint is missing or does not match.
+        ValidationError: ``rotations`` < 1.
+    """
+    return DemocapPredictor(checkpoint, rotations=rotations, workers=max(1, rotations))
+
+
+# ------------------------------------------------------------------------------ cameras
+
+
+@dataclass(frozen=True, slots=True)
+class LiveCamera:
+    """One D415 of the live rig: intrinsics of its IR/depth image and pose in the world.
+
+    Attributes:
+        name: Label, e.g. ``"d415/819612070593"`` (named in errors and timings).
+        K: ``(3, 3)`` intrinsics of the left IR = depth image (px).
+        T_world_cam: ``(4, 4)`` camera-to-world transform (translation in m).
+        distortion: ``(5,)`` Brown–Conrady ``(k1, k2, p1, p2, k3)``; zeros for a rectified
+            D415 (the default).
+        depth_scale_m: Metres per depth unit (D415: 0.001).
+        width, height: Expected image size (px); 0 = any (IR and depth must still agree).
+    """
+
+    name: str
+    K: F64 = field(repr=False)
+    T_world_cam: F64 = field(repr=False)
+    distortion: F64 = field(default_factory=lambda: np.zeros(5), repr=False)
+    depth_scale_m: float = 0.001
+    width: int = 0
+    height: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            msg = f"a live camera needs a non-empty name, got {self.name!r}"
+            raise ValidationError(msg)
+        what = f"camera {self.name!r}"
+        k = np.array(check_finite(check_shape(self.K, [3, 3], name=f"{what} K")), np.float64)
+        if k[0, 0] <= 0 or k[1, 1] <= 0:
+            msg = f"{what}: K needs positive focal lengths (px), got fx={k[0, 0]}, fy={k[1, 1]}"
+            raise ValidationError(msg)
+        t = np.array(
+            check_finite(check_shape(self.T_world_cam, [4, 4], name=f"{what} T_world_cam")),
+            np.float64,
+        )
+        d = np.array(
+            check_finite(check_shape(self.distortion, [5], name=f"{what} distortion")),
+            np.float64,
+        )
+        scale = float(self.depth_scale_m)
+        if not 0.0 < scale <= 0.1:
+            msg = (
+                f"{what}: depth_scale_m is metres per depth unit (D415: 0.001), "
+                f"got {self.depth_scale_m!r}"
+            )
+            raise ValidationError(msg)
+        w, h = int(self.width), int(self.height)
+        if w < 0 or h < 0 or (w == 0) != (h == 0):
+            msg = f"{what}: width and height must both be > 0, or both 0 (any), got {w}×{h}"
+            raise ValidationError(msg)
+        for a in (k, t, d):
+            a.setflags(write=False)
+        object.__setattr__(self, "K", k)
+        object.__setattr__(self, "T_world_cam", t)
+        object.__setattr__(self, "distortion", d)
+        object.__setattr__(self, "depth_scale_m", scale)
+        object.__setattr__(self, "width", w)
+        object.__setattr__(self, "height", h)
+
+    @classmethod
+    def from_calibration(
+        cls, calibration: Calibration, key: str, *, depth_scale_m: float = 0.001
+    ) -> LiveCamera:
+        """The camera ``key`` (name or serial) of a calibration (its K, distortion, pose and
+        image size); the depth scale is not in a calibration, so it is given.
+
+        The replay takes K and the distortion from the recording's ``camera_info`` and the
+        pose from the calibration; these agree when the calibration's intrinsics are the
+        cameras' factory ones (what ``mocaprig calibrate vicon`` writes).
+
+        Raises:
+            CalibrationError: no such camera, or it is not a D415.
+            ValidationError: bad ``depth_scale_m``.
+        """
+        cam = calibration.camera(key)
+        if cam.kind != "d415":
+            msg = f"camera {cam.name!r} is a {cam.kind!r} camera; the live pipeline takes D415s"
+            raise CalibrationError(msg)
+        return cls(
+            name=cam.name,
+            K=cam.K,
+            T_world_cam=cam.T_world_cam,
+            distortion=cam.distortion,
+            depth_scale_m=depth_scale_m,
+            width=cam.width,
+            height=cam.height,
+        )
+
+
+def cameras_from_calibration(
+    calibration: Calibration, *, depth_scale_m: float = 0.001
+) -> tuple[LiveCamera, ...]:
+    """Every D415 of a calibration, sorted by name (the replay's merge order).
+
+    Raises:
+        CalibrationError: the calibration has no D415.
+    """
+    names = sorted(c.name for c in cameras_of_kind(calibration, "d415"))
+    if not names:
+        msg = f"the calibration has no D415 camera (it has {[c.name for c in calibration.cameras]})"
+        raise CalibrationError(msg)
+    return tuple(
+        LiveCamera.from_calibration(calibration, n, depth_scale_m=depth_scale_m) for n in names
+    )
+
+
+# ------------------------------------------------------------------------------ result
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LiveResult:
+    """One rig instant through the live pipeline.
+
+    Attributes:
+        index: Position of the frame set in the stream (0 for :meth:`LivePipeline.process`).
+        prediction: Markers + joints (world, m); None when the cloud has fewer than the
+            pipeline's ``min_points`` points.
+        cloud_m: ``(M, 3)`` the fused cloud the network saw (world, m).
+        markers: Per camera (pipeline order), what it measured; None where its frame was
+            missing.
+        timings_ms: Stage -> milliseconds: ``measure_ms`` (the measurement stage's wall
+            time, all cameras), ``measure_<camera>_ms`` (each camera's measurement),
+            ``merge_ms`` (world, crop, merge), ``predict_ms`` (the predictor's wall time) and
+            its own stages (``render_ms``, ``network_ms``, ``decode_ms``... from its
+            ``last_timings_s``), ``total_ms`` (measure + merge + predict: the work on this
+            set) and ``latency_ms`` (from the start of its measurement to the result, waits
+            for the network in :meth:`LivePipeline.stream` included).
+    """
+
+    index: int
+    prediction: Prediction | None
+    cloud_m: F64 = field(repr=False)
+    markers: tuple[MarkerFrame | None, ...] = field(repr=False)
+    timings_ms: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def cameras_used(self) -> int:
+        """Cameras whose frame fed the cloud."""
+        return sum(m is not None for m in self.markers)
+
+    @property
+    def points(self) -> int:
+        """Points of the fused cloud."""
+        return int(self.cloud_m.shape[0])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Measured:
+    """The first stage's output for one set."""
+
+    index: int
+    cloud_m: F64
+    markers: tuple[MarkerFrame | None, ...]
+    timings_ms: dict[str, float]
+    t_start: float  # perf_counter at the start of its measurement
+
+
+@dataclass(frozen=True, slots=True)
+class _Failure:
+    error: BaseException
+
+
+_END: Final = object()
+
+
+# ------------------------------------------------------------------------------ pipeline
+
+
+class LivePipeline:
+    """Synchronised D415 IR + depth frames -> :class:`LiveResult` (module doc).
+
+    Args:
+        predictor: The network (:class:`~process.democap.infer.DemocapPredictor`).
+        cameras: The rig's D415s, in the order of the frame sets' pairs (names unique). The
+            order is also the merge order; pass frame sets by camera name (a mapping) when
+            the source's order may differ (:func:`cameras_from_calibration` sorts by name).
+        workers: Threads measuring the cameras of one set at once, the calling (or producer)
+            thread included; 1 (:data:`DEFAULT_WORKERS`) measures them one after the other.
+        queue_size: Measured sets :meth:`stream` holds ready for the network (≥ 1).
+        crop_box_m: World box (m) outside which points are dropped before the merge
+            (default: the training data's capture box, as the replay); None keeps all.
+        merge_radius_m: Views' points closer than this are merged (m).
+        min_points: Fewest fused points for a prediction (≥ 2, what the network needs).
+        threshold, min_area_px, max_area_px: Blob detection (:func:`calib.markers.detect_blobs`;
+            the defaults are the replay's).
+
+    Raises:
+        ValidationError: no camera, duplicate names, or a bad option.
+    """
+
+    def __init__(
+        self,
+        predictor: CloudPredictor,
+        cameras: Sequence[LiveCamera],
+        *,
+        workers: int = DEFAULT_WORKERS,
+        queue_size: int = 2,
+        crop_box_m: Box | None = CAPTURE_BOX_M,
+        merge_radius_m: float = DEFAULT_MERGE_RADIUS_M,
+        min_points: int = 2,
+        threshold: int = DEFAULT_THRESHOLD,
+        min_area_px: int = DEFAULT_MIN_AREA_PX,
+        max_area_px: int = DEFAULT_MAX_AREA_PX,
+    ) -> None:
+        cams = tuple(cameras)
+        if not cams or not all(isinstance(c, LiveCamera) for c in cams):
+            msg = f"cameras must be one or more LiveCamera, got {cameras!r}"
+            raise ValidationError(msg)
+        names = [c.name for c in cams]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            msg = f"camera names must be unique; {dup} appear more than once"
+            raise ValidationError(msg)
+        for what, value, low in (
+            ("workers", workers, 1),
+            ("queue_size", queue_size, 1),
+            ("min_points", min_points, 2),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                msg = f"{what} must be an integer >= {low}, got {value!r}"
+                raise ValidationError(msg)
+        if not np.isfinite(merge_radius_m) or merge_radius_m <= 0:
+            msg = f"merge_radius_m must be a finite number > 0 (m), got {merge_radius_m!r}"
+            raise ValidationError(msg)
+        if not 1 <= int(threshold) <= 255:
+            msg = f"threshold must lie in 1..255 (IR levels), got {threshold!r}"
+            raise ValidationError(msg)
+        if not 1 <= int(min_area_px) <= int(max_area_px):
+            msg = (
+                "blob area limits must satisfy 1 <= min_area_px <= max_area_px, "
+                f"got {min_area_px!r}, {max_area_px!r}"
+            )
+            raise ValidationError(msg)
+        self._box: F64 | None = None
+        if crop_box_m is not None:
+            box = np.asarray(crop_box_m, dtype=np.float64)
+            if box.shape != (3, 2) or not np.all(np.isfinite(box)) or np.any(box[:, 0] > box[:, 1]):
+                msg = (
+                    "crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m with lo <= hi, "
+                    f"got {crop_box_m!r}"
+                )
+                raise ValidationError(msg)
+            self._box = box
+        self.predictor = predictor
+        self.cameras = cams
+        self.workers = workers
+        self.queue_size = queue_size
+        self.merge_radius_m = float(merge_radius_m)
+        self.min_points = min_points
+        self._measure_kw = {
+            "threshold": int(threshold),
+            "min_area_px": int(min_area_px),
+            "max_area_px": int(max_area_px),
+        }
+        # Per worker beyond the calling thread, the cameras it measures (round robin).
+        self._chunks = [list(range(i, len(cams), workers)) for i in range(min(workers, len(cams)))]
+        self._pool = (
+            ThreadPoolExecutor(max_workers=len(self._chunks) - 1, thread_name_prefix="democap-live")
+            if len(self._chunks) > 1
+            else None
+        )
+        self._closed = False
+        self._lock = threading.Lock()
+        self._streams: set[threading.Event] = set()
+
+    # -- lifetime -------------------------------------------------------------------------
+
+    def __enter__(self) -> LivePipeline:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
+        return self._closed
+
+    def close(self) -> None:
+        """Stop the streams still running and shut the thread pool down (idempotent)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            for stop in self._streams:
+                stop.set()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            msg = "the live pipeline is closed; create a new LivePipeline"
+            raise ProcessingError(msg)
+
+    # -- stages ---------------------------------------------------------------------------
+
+    def _pairs(self, frames: object) -> list[_Pair | None]:
+        """Validate one frame set against the cameras; pairs in camera order."""
+        names = [c.name for c in self.cameras]
+        items: list[object]
+        if isinstance(frames, Mapping):
+            missing = [n for n in names if n not in frames]
+            extra = sorted(str(k) for k in frames if k not in names)
+            if missing or extra:
+                msg = (
+                    f"the frame set's cameras do not match the pipeline's {names}: "
+                    + ", ".join(
+                        s
+                        for s in (
+                            f"missing {missing}" if missing else "",
+                            f"unknown {extra}" if extra else "",
+                        )
+                        if s
+                    )
+                    + " (use None for a camera whose frame was dropped)"
+                )
+                raise ValidationError(msg)
+            items = [frames[n] for n in names]
+        elif isinstance(frames, Sequence) and not isinstance(frames, (str, bytes)):
+            if len(frames) != len(names):
+                msg = (
+                    f"the frame set has {len(frames)} (IR, depth) pair(s) for the "
+                    f"{len(names)} cameras {names} (one per camera, in that order; None for a "
+                    "dropped frame)"
+                )
+                raise ValidationError(msg)
+            items = list(frames)
+        else:
+            msg = (
+                "a frame set must be a sequence of (IR, depth) pairs in camera order or a "
+                f"mapping camera name -> pair, got {type(frames).__name__}"
+            )
+            raise ValidationError(msg)
+        out: list[_Pair | None] = []
+        for cam, item in zip(self.cameras, items, strict=True):
+            if item is None:
+                out.append(None)
+                continue
+            what = f"camera {cam.name!r}"
+            if not isinstance(item, (tuple, list)) or len(item) != 2:
+                msg = f"{what}: expected an (IR, depth) pair, got {type(item).__name__}"
+                raise ValidationError(msg)
+            ir, depth = np.asarray(item[0]), np.asarray(item[1])
+            if ir.ndim != 2 or ir.dtype != np.uint8:
+                msg = (
+                    f"{what}: the IR image must be 2-D uint8 (Y8), got shape {ir.shape} "
+                    f"dtype {ir.dtype}"
+                )
+                raise ValidationError(msg)
+            if depth.dtype != np.uint16 or depth.shape != ir.shape:
+                msg = (
+                    f"{what}: the depth image must be uint16 (Z16) of the IR image's shape "
+                    f"{ir.shape}, got shape {depth.shape} dtype {depth.dtype}"
+                )
+                raise ValidationError(msg)
+            if cam.width and ir.shape != (cam.height, cam.width):
+                msg = (
+                    f"{what}: images are {ir.shape[1]}×{ir.shape[0]} but the camera is "
+                    f"calibrated at {cam.width}×{cam.height}"
+                )
+                raise ValidationError(msg)
+            out.append((ir, depth))
+        return out
+
+    def _measure_cams(
+        self,
+        idx: Sequence[int],
+        pairs: Sequence[_Pair | None],
+    ) -> list[tuple[int, MarkerFrame | None, float]]:
+        out: list[tuple[int, MarkerFrame | None, float]] = []
+        for i in idx:
+            pair = pairs[i]
+            if pair is None:
+                out.append((i, None, 0.0))
+                continue
+            cam = self.cameras[i]
+            t0 = time.perf_counter()
+            mf = measure_frame(
+                pair[0],
+                pair[1],
+                cam.K,
+                depth_scale_m=cam.depth_scale_m,
+                camera=cam.name,
+                distortion=cam.distortion,
+                **self._measure_kw,
+            )
+            out.append((i, mf, time.perf_counter() - t0))
+        return out
+
+    def _measure(self, frames: FrameSet, index: int) -> _Measured:
+        """Stage 1: validate, measure every camera, world + crop + merge."""
+        t_start = time.perf_counter()
+        pairs = self._pairs(frames)
+        futures: list[Future[list[tuple[int, MarkerFrame | None, float]]]] = []
+        if self._pool is not None:
+            futures = [
+                self._pool.submit(self._measure_cams, chunk, pairs) for chunk in self._chunks[1:]
+            ]
+        done = self._measure_cams(self._chunks[0], pairs)
+        for fut in futures:
+            done.extend(fut.result())
+        t1 = time.perf_counter()
+        markers: list[MarkerFrame | None] = [None] * len(self.cameras)
+        timings = {"measure_ms": 1e3 * (t1 - t_start)}
+        for i, mf, sec in sorted(done, key=lambda r: r[0]):
+            markers[i] = mf
+            if mf is not None:
+                timings[f"measure_{self.cameras[i].name}_ms"] = 1e3 * sec
+        views = []
+        for cam, mf in zip(self.cameras, markers, strict=True):
+            if mf is None:
+                continue
+            p = to_world(mf.xyz_cam_m, cam.T_world_cam)
+            views.append(
+                p if self._box is None else crop_volume(p, self._box[:, 0], self._box[:, 1])
+            )
+        cloud = merge_views(views, radius_m=self.merge_radius_m)
+        timings["merge_ms"] = 1e3 * (time.perf_counter() - t1)
+        return _Measured(index, cloud, tuple(markers), timings, t_start)
+
+    def _predict(self, m: _Measured) -> LiveResult:
+        """Stage 2: the network on one measured set."""
+        timings = dict(m.timings_ms)
+        pred: Prediction | None = None
+        t0 = time.perf_counter()
+        if m.cloud_m.shape[0] >= self.min_points:
+            pred = self.predictor.predict_many([m.cloud_m])[0]
+            stages = getattr(self.predictor, "last_timings_s", None)
+            if isinstance(stages, Mapping):
+                for k, v in stages.items():
+                    key = str(k).removesuffix("_s")
+                    if key not in ("measure", "merge", "predict", "total", "latency"):
+                        timings[f"{key}_ms"] = 1e3 * float(v)
+        else:
+            _log.debug(
+                "frame set %d: %d fused point(s), under %d: no prediction",
+                m.index,
+                m.cloud_m.shape[0],
+                self.min_points,
+            )
+        t1 = time.perf_counter()
+        timings["predict_ms"] = 1e3 * (t1 - t0)
+        timings["total_ms"] = timings["measure_ms"] + timings["merge_ms"] + timings["predict_ms"]
+        timings["latency_ms"] = 1e3 * (t1 - m.t_start)
+        return LiveResult(m.index, pred, m.cloud_m, m.markers, timings)
+
+    # -- public ---------------------------------------------------------------------------
+
+    def process(self, frames: FrameSet) -> LiveResult:
+        """One frame set -> its :class:`LiveResult` (both stages in the calling thread, the
+        cameras spread over ``workers`` threads).
+
+        Args:
+            frames: One ``(ir (H, W) uint8, depth (H, W) uint16)`` pair per camera, in the
+                pipeline's camera order (or a mapping camera name -> pair); None for a camera
+                whose frame was dropped.
+
+        Raises:
+            ValidationError: the wrong number of pairs or cameras, or a wrong image shape or
+                dtype (the message names the camera).
+            ProcessingError: the pipeline is closed.
+        """
+        self._check_open()
+        return self._predict(self._measure(frames, 0))
+
+    def stream(self, frame_sets: Iterable[FrameSet]) -> Iterator[LiveResult]:
+        """Frame sets -> their :class:`LiveResult`, in order, as a two-stage pipeline.
+
+        A producer thread takes the sets from ``frame_sets`` and measures + merges them
+        (holding at most ``queue_size`` measured sets ahead); the network runs in the thread
+        iterating over the returned iterator. The first error of either stage (a bad set,
+        an error of the source iterable, of the measurement or of the network) is raised
+        from the iterator at that set's position, after the results before it. Stopping
+        the iteration early (``break``, ``close()``, an error) stops the producer after
+        the set it is on.
+
+        Raises:
+            ValidationError: as :meth:`process`, for the set at fault.
+            ProcessingError: the pipeline is closed.
+        """
+        self._check_open()
+        return self._stream(iter(frame_sets))
+
+    def _stream(self, source: Iterator[FrameSet]) -> Iterator[LiveResult]:
+        q: queue.Queue[object] = queue.Queue(maxsize=self.queue_size)
+        stop = threading.Event()
+        with self._lock:
+            if self._closed:
+                msg = "the live pipeline is closed; create a new LivePipeline"
+                raise ProcessingError(msg)
+            self._streams.add(stop)
+
+        def put(item: object) -> bool:
+            while not stop.is_set():
+                try:
+                    q.put(item, timeout=_POLL_S)
+                except queue.Full:
+                    continue
+                return True
+            return False
+
+        def produce() -> None:
+            index = 0
+            try:
+                while not stop.is_set():
+                    try:
+                        frames = next(source)
+                    except StopIteration:
+                        break
+                    if not put(self._measure(frames, index)):
+                        return
+                    index += 1
+                put(_END)
+            except BaseException as err:  # forwarded to the consumer, raised there
+                put(_Failure(err))
+
+        worker = threading.Thread(target=produce, name="democap-live-measure", daemon=True)
+        worker.start()
+        try:
+            while True:
+                try:
+                    item = q.get(timeout=_POLL_S)
+                except queue.Empty:
+                    if stop.is_set():
+                        msg = "the live pipeline was closed while streaming"
+                        raise ProcessingError(msg) from None
+                    continue
+                if item is _END:
+                    return
+                if isinstance(item, _Failure):
+                    raise item.error
+                yield self._predict(cast(_Measured, item))
+        finally:
+            stop.set()
+            while True:  # unblock a producer waiting on a full queue
+                try:
+                    q.get_nowait()
+                except queue.Empty:
+                    break
+            worker.join(_JOIN_TIMEOUT_S)
+            if worker.is_alive():
+                _log.warning(
+                    "the live pipeline's measurement thread is still busy after %.0f s "
+                    "(a frame source blocked?); left behind",
+                    _JOIN_TIMEOUT_S,
+                )
+            with self._lock:
+                self._streams.discard(stop)

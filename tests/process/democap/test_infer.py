@@ -1,0 +1,102 @@
+"""Inference: the rotation ensemble and the folded inference copy of the network."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from acquire.errors import ValidationError
+from process.democap.checkpoint import Checkpoint
+from process.democap.config import DemocapConfig
+from process.democap.dataset import make_pool, make_sample
+from process.democap.infer import DemocapPredictor, ensemble_rotations
+from process.democap.model import build_network
+
+
+def _checkpoint(cfg: DemocapConfig) -> Checkpoint:
+    torch.manual_seed(0)
+    net = build_network(cfg)
+    gen = torch.Generator().manual_seed(1)
+    for mod in net.modules():  # running statistics far from (0, 1), so folding them matters
+        if isinstance(mod, torch.nn.BatchNorm2d):
+            n = mod.num_features
+            mod.running_mean = torch.randn(n, generator=gen) * 0.5
+            mod.running_var = torch.rand(n, generator=gen) + 0.5
+            mod.weight.data.copy_(torch.rand(n, generator=gen) + 0.5)
+    return Checkpoint(config=cfg, model=net.eval())
+
+
+def _cloud() -> np.ndarray:
+    pool = make_pool(0, "test", takes=1, seconds=0.5)
+    return make_sample(pool[0], 3, np.random.default_rng(0), augment=False, size_px=64).raw_m
+
+
+def _turned(pred: DemocapPredictor, cloud: np.ndarray, deg: float) -> np.ndarray:
+    """Single-shot joints of the cloud turned by ``deg`` about the vertical, turned back."""
+    centre = cloud.mean(axis=0)
+    r = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    joints = pred.predict((cloud - centre) @ r.T + centre).joints_m
+    return np.asarray((joints - centre) @ r + centre)
+
+
+def test_ensemble_turns_are_spread_over_half_a_turn() -> None:
+    turns = ensemble_rotations(3)
+    np.testing.assert_allclose(turns[0], np.eye(3))
+    angles = [Rotation.from_matrix(r).magnitude() for r in turns]
+    np.testing.assert_allclose(np.rad2deg(angles), [0.0, 60.0, 120.0], atol=1e-9)
+    for r in turns:  # about the image frame's vertical axis (y)
+        np.testing.assert_allclose(r[:, 1], [0.0, 1.0, 0.0], atol=1e-12)
+    with pytest.raises(ValidationError, match="rotations must be >= 1"):
+        ensemble_rotations(0)
+
+
+def test_half_turn_adds_nothing_and_ensemble_is_the_median_of_turned_estimates(
+    tiny_config: DemocapConfig,
+) -> None:
+    ck = _checkpoint(tiny_config)
+    single = DemocapPredictor(ck, rotations=1)
+    cloud = _cloud()
+    base = single.predict(cloud).joints_m
+    # the back view of a cloud is the front view of the cloud turned by 180 degrees
+    np.testing.assert_allclose(_turned(single, cloud, 180.0), base, atol=1e-6)
+    members = [_turned(single, cloud, deg) for deg in (0.0, 60.0, 120.0)]
+    got = DemocapPredictor(ck, rotations=3).predict(cloud).joints_m
+    np.testing.assert_allclose(got, np.median(members, axis=0), atol=1e-6)
+    mean = DemocapPredictor(ck, rotations=3, combine="mean").predict(cloud).joints_m
+    np.testing.assert_allclose(mean, np.mean(members, axis=0), atol=1e-6)
+    assert not np.allclose(got, base, atol=1e-4)  # the ensemble does change the estimate
+
+
+def test_parallel_passes_give_the_same_estimate(tiny_config: DemocapConfig) -> None:
+    ck = _checkpoint(tiny_config)
+    clouds = [_cloud(), _cloud()[::2]]
+    one = DemocapPredictor(ck, rotations=4, workers=1).predict_many(clouds)
+    two = DemocapPredictor(ck, rotations=4, workers=2).predict_many(clouds)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a.joints_m, b.joints_m)
+        np.testing.assert_array_equal(a.markers_m, b.markers_m)
+
+
+def test_inference_copy_matches_the_network_and_leaves_it_untouched(
+    tiny_config: DemocapConfig,
+) -> None:
+    ck = _checkpoint(tiny_config)
+    before = {k: v.clone() for k, v in ck.model.state_dict().items()}
+    fast = DemocapPredictor(ck, rotations=1, optimise=True).predict(_cloud())
+    plain = DemocapPredictor(ck, rotations=1, optimise=False).predict(_cloud())
+    np.testing.assert_allclose(fast.joints_m, plain.joints_m, atol=1e-5)
+    np.testing.assert_allclose(fast.markers_m, plain.markers_m, atol=1e-5)
+    for k, v in ck.model.state_dict().items():
+        torch.testing.assert_close(v, before[k])
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in ck.model.modules())
+
+
+def test_bad_options_are_refused(tiny_config: DemocapConfig) -> None:
+    ck = _checkpoint(tiny_config)
+    with pytest.raises(ValidationError, match="combine"):
+        DemocapPredictor(ck, combine="max")  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="workers"):
+        DemocapPredictor(ck, workers=0)
+    assert DemocapPredictor(ck).predict_many([]) == []
