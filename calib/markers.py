@@ -53,6 +53,7 @@ from acquire.recording_format import topic
 __all__ = [
     "DEFAULT_THRESHOLD",
     "MarkerFrame",
+    "check_blob_options",
     "crop_volume",
     "detect_blobs",
     "frame_times",
@@ -124,6 +125,23 @@ class MarkerFrame:
         return ok
 
 
+def check_blob_options(*, threshold: int, min_area_px: int, max_area_px: int) -> None:
+    """Check blob-detection options (:func:`detect_blobs`).
+
+    Raises:
+        ValidationError: ``threshold`` outside 1..255, or not 1 <= min <= max area.
+    """
+    if not 1 <= int(threshold) <= 255:
+        msg = f"threshold must lie in 1..255 (IR levels), got {threshold!r}"
+        raise ValidationError(msg)
+    if not 1 <= int(min_area_px) <= int(max_area_px):
+        msg = (
+            "blob area limits must satisfy 1 <= min_area_px <= max_area_px, "
+            f"got {min_area_px!r}, {max_area_px!r}"
+        )
+        raise ValidationError(msg)
+
+
 def detect_blobs(
     ir_u8: npt.ArrayLike,
     *,
@@ -150,15 +168,7 @@ def detect_blobs(
     if img.ndim != 2 or img.dtype != np.uint8:
         msg = f"ir_u8 must be a 2-D uint8 IR image, got shape {img.shape} dtype {img.dtype}"
         raise ValidationError(msg)
-    if not 1 <= int(threshold) <= 255:
-        msg = f"threshold must lie in 1..255 (IR levels), got {threshold!r}"
-        raise ValidationError(msg)
-    if not 1 <= int(min_area_px) <= int(max_area_px):
-        msg = (
-            "blob area limits must satisfy 1 <= min_area_px <= max_area_px, "
-            f"got {min_area_px!r}, {max_area_px!r}"
-        )
-        raise ValidationError(msg)
+    check_blob_options(threshold=threshold, min_area_px=min_area_px, max_area_px=max_area_px)
     img = np.ascontiguousarray(img)
     _, hi = cv2.threshold(img, int(threshold) - 1, 1, cv2.THRESH_BINARY)
     if not cv2.countNonZero(hi):

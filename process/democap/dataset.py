@@ -84,6 +84,16 @@ def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> 
     return Motion(motion.name, motion.rate_hz, poses)
 
 
+def _check_split_and_count(split: str, **count: int) -> None:
+    if split not in _SPLIT_KEY:
+        msg = f"split must be 'train' or 'test', got {split!r}"
+        raise ValidationError(msg)
+    for name, n in count.items():
+        if n < 1:
+            msg = f"{name} must be >= 1, got {n}"
+            raise ValidationError(msg)
+
+
 def make_pool(
     seed: int,
     split: Split,
@@ -102,12 +112,7 @@ def make_pool(
     if actions is not None and (not actions or any(a not in PROCEDURAL_MOTIONS for a in actions)):
         msg = f"actions must be procedural motions ({', '.join(PROCEDURAL_MOTIONS)}), got {actions}"
         raise ValidationError(msg)
-    if split not in _SPLIT_KEY:
-        msg = f"split must be 'train' or 'test', got {split!r}"
-        raise ValidationError(msg)
-    if takes < 1:
-        msg = f"takes must be >= 1, got {takes}"
-        raise ValidationError(msg)
+    _check_split_and_count(split, takes=takes)
     pool = []
     for k in range(takes):
         rng = np.random.default_rng([seed, _SPLIT_KEY[split], k])
@@ -133,12 +138,7 @@ def pool_from_bvh(
     Raises:
         ValidationError: ``subjects`` < 1 or an unknown split.
     """
-    if split not in _SPLIT_KEY:
-        msg = f"split must be 'train' or 'test', got {split!r}"
-        raise ValidationError(msg)
-    if subjects < 1:
-        msg = f"subjects must be >= 1, got {subjects}"
-        raise ValidationError(msg)
+    _check_split_and_count(split, subjects=subjects)
     step = max(1, round(1.0 / (clip.frame_time_s * RATE_HZ)))
     thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
     out = []

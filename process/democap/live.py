@@ -57,6 +57,7 @@ from calib.markers import (
     DEFAULT_MIN_AREA_PX,
     DEFAULT_THRESHOLD,
     MarkerFrame,
+    check_blob_options,
     crop_volume,
     measure_frame,
     merge_views,
@@ -359,15 +360,7 @@ class LivePipeline:
         if not np.isfinite(merge_radius_m) or merge_radius_m <= 0:
             msg = f"merge_radius_m must be a finite number > 0 (m), got {merge_radius_m!r}"
             raise ValidationError(msg)
-        if not 1 <= int(threshold) <= 255:
-            msg = f"threshold must lie in 1..255 (IR levels), got {threshold!r}"
-            raise ValidationError(msg)
-        if not 1 <= int(min_area_px) <= int(max_area_px):
-            msg = (
-                "blob area limits must satisfy 1 <= min_area_px <= max_area_px, "
-                f"got {min_area_px!r}, {max_area_px!r}"
-            )
-            raise ValidationError(msg)
+        check_blob_options(threshold=threshold, min_area_px=min_area_px, max_area_px=max_area_px)
         self._box: F64 | None = None
         if crop_box_m is not None:
             box = np.asarray(crop_box_m, dtype=np.float64)
