@@ -176,10 +176,17 @@ def _positive_rate(rate_hz: float) -> float:
     return rate
 
 
-def _check_first_frame(first_frame: int) -> None:
+def _freeze_provenance(record: MarkerTrajectories | AnalogChannels) -> None:
+    """Check and normalise the fields both records share: ``first_frame`` (an int),
+    ``source`` (a str) and ``metadata`` (a read-only str -> str mapping)."""
+    first_frame = record.first_frame
     if isinstance(first_frame, bool) or int(first_frame) != first_frame:
         msg = f"first_frame must be an int, got {first_frame!r}"
         raise ValidationError(msg)
+    object.__setattr__(record, "first_frame", int(first_frame))
+    object.__setattr__(record, "source", str(record.source))
+    meta = MappingProxyType({str(k): str(v) for k, v in record.metadata.items()})
+    object.__setattr__(record, "metadata", meta)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -239,18 +246,13 @@ class MarkerTrajectories:
         if self.source_unit not in _METRES_PER_UNIT:
             msg = f"source_unit must be one of {sorted(_METRES_PER_UNIT)}, got {self.source_unit!r}"
             raise ValidationError(msg)
-        _check_first_frame(self.first_frame)
+        _freeze_provenance(self)
         pos.setflags(write=False)
         res.setflags(write=False)
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "rate_hz", rate)
         object.__setattr__(self, "positions_m", pos)
         object.__setattr__(self, "residuals_m", res)
-        object.__setattr__(self, "first_frame", int(self.first_frame))
-        object.__setattr__(self, "source", str(self.source))
-        object.__setattr__(
-            self, "metadata", MappingProxyType({str(k): str(v) for k, v in self.metadata.items()})
-        )
 
     @property
     def n_frames(self) -> int:
@@ -408,18 +410,13 @@ class AnalogChannels:
         if len(units) != len(labels):
             msg = f"{len(units)} units for {len(labels)} analog channels"
             raise ValidationError(msg)
-        _check_first_frame(self.first_frame)
+        _freeze_provenance(self)
         values.setflags(write=False)
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "rate_hz", rate)
         object.__setattr__(self, "point_rate_hz", point_rate)
         object.__setattr__(self, "values", values)
         object.__setattr__(self, "units", units)
-        object.__setattr__(self, "first_frame", int(self.first_frame))
-        object.__setattr__(self, "source", str(self.source))
-        object.__setattr__(
-            self, "metadata", MappingProxyType({str(k): str(v) for k, v in self.metadata.items()})
-        )
 
     @property
     def n_channels(self) -> int:

@@ -409,6 +409,30 @@ def _free_angle(rng: np.random.Generator, dof: str, pull: float) -> float:
     return pull * float(rng.uniform(lo, hi))
 
 
+_ARM_DOFS = (
+    "shoulder_flexion",
+    "shoulder_abduction",
+    "shoulder_internal_rotation",
+    "elbow_flexion",
+    "elbow_pronation",
+)
+_LEG_DOFS = (
+    "hip_flexion",
+    "hip_abduction",
+    "hip_internal_rotation",
+    "knee_flexion",
+    "ankle_dorsiflexion",
+    "ankle_inversion",
+)
+
+
+def _free_limb(a: FloatArray, side: str, dofs: tuple[str, ...], rng: np.random.Generator) -> None:
+    """Add one free limb to key ``a`` (1, 27): one pull toward rest for the whole limb."""
+    pull = float(rng.uniform(0.3, 1.0))
+    for dof in dofs:
+        _side(a, side, dof, _free_angle(rng, dof, pull))
+
+
 def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
     """One random key: angles (27,) degrees and support weights (right, left)."""
     a = np.zeros((1, NUM_DOF))
@@ -418,15 +442,7 @@ def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
     for dof in ("neck_flexion", "neck_axial_rotation"):
         a[0, _DOF[dof]] = _free_angle(rng, dof, pull)
     for side in ("left", "right"):
-        arm = float(rng.uniform(0.3, 1.0))
-        for dof in (
-            "shoulder_flexion",
-            "shoulder_abduction",
-            "shoulder_internal_rotation",
-            "elbow_flexion",
-            "elbow_pronation",
-        ):
-            _side(a, side, dof, _free_angle(rng, dof, arm))
+        _free_limb(a, side, _ARM_DOFS, rng)
     stance = int(rng.integers(3))  # 0: both feet planted, 1: right planted, 2: left planted
     if stance == 0:
         knee = float(rng.uniform(0.0, 110.0)) * float(rng.uniform(0.0, 1.0))
@@ -441,16 +457,7 @@ def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
         _side(a, planted, "hip_flexion", hip)
         _side(a, planted, "ankle_dorsiflexion", knee - hip)
         _side(a, planted, "hip_abduction", float(rng.uniform(-5.0, 10.0)))
-        leg = float(rng.uniform(0.3, 1.0))
-        for dof in (
-            "hip_flexion",
-            "hip_abduction",
-            "hip_internal_rotation",
-            "knee_flexion",
-            "ankle_dorsiflexion",
-            "ankle_inversion",
-        ):
-            _side(a, free, dof, _free_angle(rng, dof, leg))
+        _free_limb(a, free, _LEG_DOFS, rng)
         support = np.array([1.0, 0.0]) if stance == 1 else np.array([0.0, 1.0])
     return a[0], support
 
@@ -458,7 +465,7 @@ def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
 def _freestyle(take: _Take) -> _Score:
     a, sup, fl = _zeros(take)
     rng = take.rng
-    end = float(take.t[-1]) if take.t.size else 0.0
+    end = float(take.t[-1])
     times, keys, supports = [0.0], [np.zeros(NUM_DOF)], [np.array([0.5, 0.5])]
     while times[-1] <= end:
         times.append(times[-1] + float(rng.uniform(0.45, 1.2)) / take.tempo)

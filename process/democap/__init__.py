@@ -21,7 +21,7 @@ from process.democap.checkpoint import (
     save_checkpoint,
 )
 from process.democap.config import CONFIGS, VARIANTS, DemocapConfig, config_by_name
-from process.democap.evaluate import EvalReport, evaluate
+from process.democap.evaluate import EvalReport, evaluate, held_out_pool
 from process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
 from process.democap.live import (
     LIVE_ROTATIONS,
@@ -79,13 +79,16 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
         ProcessingError: the committed checkpoint is missing or does not match.
     """
     predictor = DemocapPredictor()
-    rep = evaluate(predictor, seed=seed, num_cameras=4, frames_per_take=frames_per_take)
-    m = rep.metrics
+    pool = held_out_pool(seed)  # one test set for both inferences
+    m = evaluate(
+        predictor, seed=seed, num_cameras=4, frames_per_take=frames_per_take, pool=pool
+    ).metrics
     single = evaluate(
         DemocapPredictor(predictor.checkpoint, rotations=1),
         seed=seed,
         num_cameras=4,
         frames_per_take=frames_per_take,
+        pool=pool,
     ).metrics
     return {
         "mpjpe_mm": m.mpjpe_mm,

@@ -218,6 +218,7 @@ def democap_train(args: argparse.Namespace) -> int:
     import dataclasses
 
     from acquire.errors import ValidationError
+    from process.body import read_bvh
     from process.democap.checkpoint import load_checkpoint
     from process.democap.config import config_by_name
     from process.democap.train import TrainOptions, train
@@ -233,8 +234,6 @@ def democap_train(args: argparse.Namespace) -> int:
     config = config_by_name(args.config)
     if args.variant is not None:
         config = dataclasses.replace(config, variant=args.variant)
-    from process.body import read_bvh
-
     motions = tuple(read_bvh(p) for p in args.bvh)
 
     opts = TrainOptions(

@@ -210,9 +210,7 @@ class DemocapPredictor:
         for rot in self._turns:
             fronts, backs, box = [], [], []
             for p in points:
-                f, b, norm, centre = prepare_cloud(
-                    p, None if self.rotations == 1 else rot, size_px=self.size_px
-                )
+                f, b, norm, centre = prepare_cloud(p, rot, size_px=self.size_px)
                 fronts.append(f)
                 backs.append(b)
                 box.append((norm, centre))
@@ -238,8 +236,7 @@ class DemocapPredictor:
                 mk[k, i] = to_world_frame(norm.invert(m[i]) @ rot + centre)
                 jt[k, i] = to_world_frame(norm.invert(j[i]) @ rot + centre)
         reduce = np.median if self.combine == "median" else np.mean
-        markers = mk[0] if len(views) == 1 else reduce(mk, axis=0)
-        joints = jt[0] if len(views) == 1 else reduce(jt, axis=0)
+        markers, joints = reduce(mk, axis=0), reduce(jt, axis=0)
         out = [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(len(points))]
         t3 = time.perf_counter()
         self.last_timings_s = {"render_s": t1 - t0, "network_s": t2 - t1, "decode_s": t3 - t2}
