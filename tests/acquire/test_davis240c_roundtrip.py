@@ -62,11 +62,16 @@ def ext_specials(specials: npt.NDArray[np.void]) -> list[tuple[int, int]]:
     return [(int(s["t"]), int(s["type"])) for s in specials[keep]]
 
 
-def check_frame(frame: ApsFrame, exposure: ApsExposure) -> None:
-    assert (frame.t_start_exposure_us, frame.t_end_exposure_us) == (
-        exposure.start_us,
-        exposure.end_us,
-    )
+def reported_at(got_us: int, due_us: int, *, wrap_race: bool) -> bool:
+    """Whether a word due at ``due_us`` may be reported at ``got_us``: exactly, or, with the
+    wrap race (note §7.1), 1 µs early when it falls on a rollover (latched, stamped 0xFFFF)."""
+    early = wrap_race and due_us > 0 and due_us % 32768 == 0 and got_us == due_us - 1
+    return got_us == due_us or early
+
+
+def check_frame(frame: ApsFrame, exposure: ApsExposure, *, wrap_race: bool = False) -> None:
+    assert reported_at(frame.t_start_exposure_us, exposure.start_us, wrap_race=wrap_race)
+    assert reported_at(frame.t_end_exposure_us, exposure.end_us, wrap_race=wrap_race)
     assert frame.exposure_cycles == (exposure.end_us - exposure.start_us) * 30
     assert frame.pixels.shape == (180, 240)
     # reset - signal is sent as two 10-bit reads and doubled by the host: ±1 count of rounding.
@@ -179,7 +184,7 @@ def test_decoder_inverts_the_independent_encoder(
     want_frames = [e for seg in segments for w in seg.windows for e in w.exposures]
     assert len(frames) == len(want_frames)
     for f, e in zip(frames, want_frames, strict=True):
-        check_frame(f, e)
+        check_frame(f, e, wrap_race=wrap_race)
 
 
 # -- acceptance: a raw stream through `mocaprig davis decode` -------------------------------------
@@ -194,6 +199,26 @@ def _window(t0: int, t1: int, *, seed: int, n: int, **extra: object) -> DavisAct
         rng.integers(0, 2, n),
     )
     return DavisActivity(t0_us=t0, t1_us=t1, events=ev, **extra)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("wrap_race", [False, True])
+def test_exposure_ending_on_a_rollover_is_latched_one_microsecond_early_by_the_race(
+    wrap_race: bool,
+) -> None:
+    """Note §7.1: a word due exactly at a rollover, latched before the WRAP, is stamped 0xFFFF:
+    the exposure that ends at 32768 µs is reported at 32767 µs."""
+    cds = np.random.default_rng(3).integers(0, 1000, (180, 240)).astype(np.float64)
+    exposure = ApsExposure(start_us=28_768, end_us=32_768, cds=cds)
+    enc = DavisWordEncoder(CONFIG, wrap_race=wrap_race, seed=1)
+    empty = {"imu": np.zeros(0, IMU_DTYPE), "ext_input": np.zeros(0, EXT_INPUT_DTYPE)}
+    data = enc.encode(_window(0, 100_000, seed=0, n=0, exposures=(exposure,), **empty))
+    data += enc.encode(_window(100_000, 101_000, seed=0, n=0, **empty)) + enc.flush()
+    dec = DavisDecoder()
+    frames = [*dec.decode(data).frames, *dec.decode(b"").frames]
+    assert len(frames) == 1
+    assert frames[0].t_start_exposure_us == 28_768
+    assert frames[0].t_end_exposure_us == (32_767 if wrap_race else 32_768)
+    check_frame(frames[0], exposure, wrap_race=wrap_race)
 
 
 def test_acceptance_independent_encoder_stream_decodes_exactly_through_the_cli(
