@@ -21,12 +21,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from acquire.cli import add_json_flag, emit_json
-from acquire.errors import DeviceError, RecordingError
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.errors import DeviceError, RecordingError
 
 if TYPE_CHECKING:
-    from acquire.davis240c import Davis240C
-    from acquire.davis240c_decode import DavisPacket
+    from mocaprig.acquire.davis240c import Davis240C
+    from mocaprig.acquire.davis240c_decode import DavisPacket
 
 _log = logging.getLogger(__name__)
 
@@ -156,14 +156,14 @@ def decode_raw_file(
     """
     import numpy as np
 
-    from acquire.davis240c_decode import (
+    from mocaprig.acquire.davis240c_decode import (
         IMU_SAMPLE_DTYPE,
         SPECIAL_DTYPE,
         ApsFrame,
         DavisDecoder,
         SpecialType,
     )
-    from acquire.events import EVENT_DTYPE
+    from mocaprig.acquire.events import EVENT_DTYPE
 
     raw_path, out_path = Path(raw_path), Path(out_path)
     if not raw_path.is_file():
@@ -257,11 +257,11 @@ def load_decoded(path: str | Path) -> dict[str, Any]:
     """Read an .npz written by :func:`decode_raw_file`.
 
     Returns a dict with ``events``, ``specials``, ``imu`` (structured arrays) and ``frames``
-    (a list of :class:`acquire.davis240c_decode.ApsFrame`).
+    (a list of :class:`mocaprig.acquire.davis240c_decode.ApsFrame`).
     """
     import numpy as np
 
-    from acquire.davis240c_decode import ApsFrame
+    from mocaprig.acquire.davis240c_decode import ApsFrame
 
     with np.load(Path(path), allow_pickle=False) as z:
         meta, pix = z["frame_meta"], z["frame_pixels"]
@@ -290,7 +290,7 @@ def load_decoded(path: str | Path) -> dict[str, Any]:
 
 
 def _open_davis(*, mock: bool, serial: str | None, **options: Any) -> Davis240C:
-    from acquire.davis240c import Davis240C, load_mock_backend
+    from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
 
     backend = load_mock_backend() if mock else None
     return Davis240C.open(serial=serial, backend=backend, **options)
@@ -344,7 +344,7 @@ def davis_config(
     as_json: bool,
 ) -> int:
     """``mocaprig davis config``: write a bias preset + defaults, then ``--set`` writes."""
-    from acquire.davis240c_config import bias_set, parse_setting
+    from mocaprig.acquire.davis240c_config import bias_set, parse_setting
 
     bias_set(bias_preset)  # validate the name before touching the device
     writes = []
@@ -378,7 +378,7 @@ def davis_stream(
     as_json: bool,
 ) -> int:
     """``mocaprig davis stream``: stream for ``seconds``, live status line, JSON summary."""
-    from acquire.check import check_positive
+    from mocaprig.validation import check_positive
 
     check_positive(seconds, name="--seconds")
     if raw_out is not None and raw_out.exists():
@@ -525,7 +525,7 @@ Prober = Callable[[bool], list[DeviceListing]]
 
 def probe_davis(mock: bool) -> list[DeviceListing]:
     """DAVIS cameras on the bus (or the mock's) as :class:`DeviceListing` rows."""
-    from acquire.davis240c import find_davis, load_mock_backend
+    from mocaprig.acquire.davis240c import find_davis, load_mock_backend
 
     backend = load_mock_backend() if mock else None
     return [
@@ -547,7 +547,7 @@ def probe_davis(mock: bool) -> list[DeviceListing]:
 
 def probe_d415(mock: bool) -> list[DeviceListing]:
     """RealSense D415 cameras (or the mock rig's) as :class:`DeviceListing` rows."""
-    from acquire.realsense import list_d415_devices
+    from mocaprig.acquire.realsense import list_d415_devices
 
     return [
         DeviceListing(
@@ -563,7 +563,7 @@ def probe_d415(mock: bool) -> list[DeviceListing]:
 
 def probe_syncbox(mock: bool) -> list[DeviceListing]:
     """Sync boxes that answer ``HELLO`` on a USB-serial port (or the mock box)."""
-    from acquire.syncbox import SyncBox, find_syncboxes, open_mock_syncbox
+    from mocaprig.acquire.syncbox import SyncBox, find_syncboxes, open_mock_syncbox
 
     def identify(port: str) -> DeviceListing:
         with SyncBox(port, boot_timeout_s=2.5, max_reopen=0) as sb:

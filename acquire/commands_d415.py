@@ -14,8 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from acquire.cli import add_json_flag, emit_json
-from acquire.d415_sync import (
+from mocaprig.acquire.d415_sync import (
     SyncFlag,
     SyncHealth,
     SyncReport,
@@ -24,15 +23,16 @@ from acquire.d415_sync import (
     run_sync_check,
     start_rig,
 )
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     DepthCamera,
     FrameSet,
     SensorOptions,
     StreamConfig,
     open_cameras,
 )
-from acquire.errors import ValidationError
-from acquire.realsense import METADATA_HINT
+from mocaprig.acquire.realsense import METADATA_HINT
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.errors import ValidationError
 
 __all__ = ["check_sync", "list_cameras", "register_d415", "stream"]
 

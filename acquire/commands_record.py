@@ -22,12 +22,15 @@ from typing import Any, Literal, TextIO
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_range
-from acquire.cli import add_json_flag, emit_json
-from acquire.errors import DeviceError, RecordingError, ValidationError
-from acquire.events import check_events, make_events
-from acquire.recorder import Attachment, Recorder, StreamSource, record_sources, stop_on_signals
-from acquire.recording_format import (
+from mocaprig.acquire.events import check_events, make_events
+from mocaprig.acquire.recorder import (
+    Attachment,
+    Recorder,
+    StreamSource,
+    record_sources,
+    stop_on_signals,
+)
+from mocaprig.acquire.recording_format import (
     MAX_EVENT_PACKET_SPAN_US,
     CameraCalibrationMsg,
     D415FrameInfo,
@@ -42,7 +45,10 @@ from acquire.recording_format import (
     split_events,
     topic,
 )
-from acquire.rig_file import RigFile, load_rig_file
+from mocaprig.acquire.rig_file import RigFile, load_rig_file
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.errors import DeviceError, RecordingError, ValidationError
+from mocaprig.validation import check_range
 
 __all__ = [
     "DavisSource",
@@ -138,7 +144,7 @@ class DavisSource:
         if self.manage_streaming:
             cam.start()
             if not self.dvs:
-                from acquire.davis240c_config import DvsParam, Module
+                from mocaprig.acquire.davis240c_config import DvsParam, Module
 
                 cam.config_set(Module.DVS, DvsParam.RUN, 0)
         put = recorder.put_wait if self.offline else recorder.put
@@ -230,7 +236,7 @@ def _chunks(arr: npt.NDArray[Any], n: int) -> list[npt.NDArray[Any]]:
 
 
 class DepthCameraSource:
-    """A D415 (:class:`acquire.depth_camera.DepthCamera`, configured) as a stream source.
+    """A D415 (:class:`mocaprig.acquire.depth_camera.DepthCamera`, configured) as a stream source.
 
     Topics: ``/d415/<serial>/{ir,depth,frame_info,camera_info}``; ``camera_info`` is written
     once at start (and is the same for IR and depth on a D415).
@@ -344,7 +350,7 @@ class DepthCameraSource:
 
 
 class SyncBoxSource:
-    """A sync box (:class:`acquire.syncbox.SyncBox`, opened) as a stream source.
+    """A sync box (:class:`mocaprig.acquire.syncbox.SyncBox`, opened) as a stream source.
 
     Topic ``/syncbox/pulses``: one message per ``PULSES`` report. ``mode`` ``listen`` counts
     the D415 master's pulses; ``generate`` drives the trigger at ``hz``.
@@ -456,8 +462,8 @@ def _mock_sources(
     syncbox: bool,
     stack: list[tuple[str, Any]],
 ) -> list[StreamSource]:
-    from acquire.davis240c import Davis240C, load_mock_backend
-    from acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
 
     sources: list[StreamSource] = []
     # "asap": the DAVIS simulator cannot render in real time on a small machine.
@@ -480,7 +486,7 @@ def _mock_sources(
             )
             sources.append(DepthCameraSource(d, stream=mode, options=opts))
     if syncbox:
-        from acquire.syncbox import SyncBox, open_mock_syncbox
+        from mocaprig.acquire.syncbox import SyncBox, open_mock_syncbox
 
         mock_box = open_mock_syncbox(seed=seed)
         stack.append(("syncbox-mock", mock_box))
@@ -511,8 +517,8 @@ def _rig_sources(
             opened.
         ValidationError: a mock rig file asks for more cameras than the simulated rig has.
     """
-    from acquire import davis240c, depth_camera
-    from acquire.depth_camera import SyncMode
+    from mocaprig.acquire import davis240c, depth_camera
+    from mocaprig.acquire.depth_camera import SyncMode
 
     sources: list[StreamSource] = []
     if rig.davis is not None:
@@ -579,7 +585,7 @@ def _rig_sources(
             src.metadata[f"device/{src.name}"]["rig_role"] = e.role
             sources.append(src)
     if rig.syncbox is not None:
-        from acquire.syncbox import SyncBox, open_mock_syncbox
+        from mocaprig.acquire.syncbox import SyncBox, open_mock_syncbox
 
         sb = rig.syncbox
         if rig.mock:
@@ -608,7 +614,7 @@ class RecordingSummary:
 
     Attributes:
         files: The file(s) written (several when split).
-        stop_reason: Why the recording ended (:class:`acquire.recorder.StopReason` value).
+        stop_reason: Why the recording ended (:class:`mocaprig.acquire.recorder.StopReason` value).
         seconds: Host time recorded (s).
         bytes: Bytes written.
         drops_total: Messages dropped, all streams.
@@ -796,7 +802,7 @@ def record(
 
 def recording_info(path: Path, *, as_json: bool) -> int:
     """``mocaprig info``: topics, counts, rates, drops, counter gaps, chunks."""
-    from acquire.recording import info
+    from mocaprig.acquire.recording import info
 
     inf = info(path)
     d = inf.as_dict()
@@ -828,7 +834,7 @@ def recording_info(path: Path, *, as_json: bool) -> int:
 
 def recover_command(src: Path, out: Path, *, as_json: bool) -> int:
     """``mocaprig recover``: exit 0 = nothing lost, 3 = something lost, 1 = nothing found."""
-    from acquire.recording import recover
+    from mocaprig.acquire.recording import recover
 
     rep = recover(src, out)
     code = 0 if rep.lossless else (3 if rep.messages else 1)
@@ -1139,7 +1145,7 @@ def export(
     ``txt`` writes RPG ``t x y p`` lines with the stored ns times (9 decimals) and, only with
     ``txt_header``, a first ``width height`` line.
     """
-    from acquire.recording import Recording
+    from mocaprig.acquire.recording import Recording
 
     if out.exists() and fmt != "png":
         msg = f"{out} exists already; not overwriting (choose another --out)"

@@ -36,8 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
-from acquire.check import check_positive
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     DepthCamera,
     FrameSet,
     FrameTiming,
@@ -46,7 +45,9 @@ from acquire.depth_camera import (
     SyncMode,
     TimestampDomain,
 )
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.timebase import U32Unwrapper
+from mocaprig.validation import check_positive
 
 __all__ = [
     "FAILING_FLAGS",
@@ -65,7 +66,6 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-_WRAP_US: Final = 1 << 32
 """The D415 hardware clock is a u32 µs counter (§2.5)."""
 
 
@@ -315,8 +315,7 @@ class _Cam:
     domain: TimestampDomain | None = None
     last_counter: int | None = None
     first_counter: int | None = None
-    last_raw_us: int | None = None
-    wrap_us: int = 0
+    unwrap: U32Unwrapper = field(default_factory=U32Unwrapper)
     first_ts_us: int | None = None
     last_ts_us: int | None = None
     epoch: int = 0
@@ -325,12 +324,6 @@ class _Cam:
     history: OrderedDict[int, tuple[int, int, float, TimestampDomain]] = field(
         default_factory=OrderedDict
     )
-
-    def unwrap(self, raw: int) -> int:
-        if self.last_raw_us is not None and raw < self.last_raw_us - (_WRAP_US >> 1):
-            self.wrap_us += _WRAP_US
-        self.last_raw_us = raw
-        return raw + self.wrap_us
 
 
 @dataclass(slots=True)

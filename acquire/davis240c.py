@@ -2,7 +2,7 @@
 
 The protocol is in ``docs/davis240c-usb.md`` (shared docs): vendor request 0xBF reads/writes
 one 32-bit register (big-endian), 0xC2 writes several at once; data arrive on bulk EP 0x82 as
-16-bit words decoded by :mod:`acquire.davis240c_decode`.
+16-bit words decoded by :mod:`mocaprig.acquire.davis240c_decode`.
 
 Usage::
 
@@ -13,12 +13,12 @@ Usage::
 
 Streaming uses two threads: a *reader* that only keeps EP 0x82 drained (one synchronous
 ``read_size``-byte bulk read at a time, short timeout) and hands raw chunks over, and a
-*decoder* that turns them into :class:`~acquire.davis240c_decode.DavisPacket` objects in a
+*decoder* that turns them into :class:`~mocaprig.acquire.davis240c_decode.DavisPacket` objects in a
 bounded queue. A slow consumer never blocks either thread: packets that do not fit are dropped
 and counted by kind (:class:`StreamStats`); their special events (timestamp resets, triggers)
 are kept and delivered with the next packet. A USB error other than a timeout (unplugged cable)
 stops the stream cleanly: everything already received is decoded and delivered, then
-:meth:`Davis240C.packets` raises :class:`~acquire.errors.DeviceError`.
+:meth:`Davis240C.packets` raises :class:`~mocaprig.errors.DeviceError`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from typing import Any, BinaryIO, Final, Self
 
 import numpy as np
 
-from acquire.davis240c_config import (
+from mocaprig.acquire.davis240c_config import (
     ApsParam,
     BiasPreset,
     DavisSettings,
@@ -52,9 +52,9 @@ from acquire.davis240c_config import (
     UsbParam,
     default_config_writes,
 )
-from acquire.davis240c_decode import DavisDecoder, DavisPacket, DecodeStats
-from acquire.errors import DeviceError, ValidationError
-from acquire.events import empty_events
+from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket, DecodeStats
+from mocaprig.acquire.events import empty_events
+from mocaprig.errors import DeviceError, ValidationError
 
 __all__ = [
     "DATA_ENDPOINT",

@@ -15,7 +15,7 @@ from enum import Enum, IntEnum
 from types import MappingProxyType
 from typing import Final
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = [
     "BIAS_PRESETS",
@@ -575,7 +575,7 @@ class ExtInputSettings:
 
 @dataclass(frozen=True, slots=True)
 class DavisSettings:
-    """Everything :meth:`acquire.davis240c.Davis240C.send_default_config` writes."""
+    """Everything :meth:`mocaprig.acquire.davis240c.Davis240C.send_default_config` writes."""
 
     biases: Mapping[BiasParam, Bias] = field(default_factory=bias_set)
     aps: ApsSettings = field(default_factory=ApsSettings)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire.events import EVENT_DTYPE, empty_events
+from mocaprig.acquire.events import EVENT_DTYPE, empty_events
 
 __all__ = [
     "DAVIS240C_APS_COLUMNS",
@@ -231,7 +231,7 @@ class DavisPacket:
     """Everything decoded from one chunk of the bulk stream.
 
     Attributes:
-        events: Polarity events, :data:`acquire.events.EVENT_DTYPE`, in stream order.
+        events: Polarity events, :data:`mocaprig.acquire.events.EVENT_DTYPE`, in stream order.
         frames: APS frames completed in this chunk.
         imu: IMU samples, :data:`IMU_SAMPLE_DTYPE`.
         specials: Special events, :data:`SPECIAL_DTYPE` (TS reset, ext input, APS markers...).

@@ -15,8 +15,8 @@ Contract every implementation honours (the mock too):
 
 * ``configure(stream=, options=, sync_mode=)`` is called while the camera is stopped; the sync
   mode is applied **before** the sensor is opened (the option is read-only while open, §2.3).
-  Calling it while streaming raises :class:`~acquire.errors.DeviceError`. Sync mode values above
-  2 raise :class:`~acquire.errors.ValidationError` (:func:`check_sync_mode`).
+  Calling it while streaming raises :class:`~mocaprig.errors.DeviceError`. Sync mode values above
+  2 raise :class:`~mocaprig.errors.ValidationError` (:func:`check_sync_mode`).
 * ``start()`` opens the sensor and starts streaming; ``stop()`` stops and closes it; ``close()``
   releases the device (``stop()`` first when streaming). The context manager calls ``close()``.
 * ``poll(timeout_s)`` returns the next complete :class:`FrameSet` (left IR + depth of the same
@@ -47,8 +47,8 @@ from typing import Any, Final, Protocol, Self, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_range, check_shape
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.validation import check_range, check_shape
 
 __all__ = [
     "ALLOWED_MODES",
@@ -489,7 +489,7 @@ def load_mock_factory(name: str) -> Callable[..., Any]:
 
 
 def _realsense_cameras(**kwargs: Any) -> list[DepthCamera]:
-    from acquire.realsense import enumerate_cameras  # lazy: pyrealsense2 is optional
+    from mocaprig.acquire.realsense import enumerate_cameras  # lazy: pyrealsense2 is optional
 
     return list(enumerate_cameras(**kwargs))
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = ["EVENT_DTYPE", "check_events", "empty_events", "make_events"]
 

@@ -34,7 +34,7 @@ from typing import Any, Final, Self
 
 import numpy as np
 
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     CameraInfo,
     D415Frame,
     Distortion,
@@ -50,7 +50,7 @@ from acquire.depth_camera import (
     check_sync_mode,
     open_cameras,
 )
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceError, ValidationError
 
 __all__ = [
     "METADATA_HINT",

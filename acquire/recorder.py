@@ -21,7 +21,7 @@ Design (``docs/recording-format.md`` §Recorder):
   source died, a disk stop, a split) go to ``/log`` (``foxglove.Log``); the final counts go into
   the ``mocaprig.summary`` metadata record written just before the file is finished.
 * Free disk is watched; below ``min_free_disk_bytes`` the recorder stops, finishes the file and
-  :meth:`Recorder.__exit__` raises :class:`~acquire.errors.RecordingError` saying so.
+  :meth:`Recorder.__exit__` raises :class:`~mocaprig.errors.RecordingError` saying so.
 * Optional splitting by size or duration into numbered files ``<stem>_000.mcap``, ... Each
   part is self-contained (schemas, channels, metadata and attachments repeated).
 
@@ -51,9 +51,8 @@ from typing import Any, BinaryIO, Final, Literal, Protocol, Self
 
 from mcap.writer import CompressionType, Writer
 
-from acquire import __version__
-from acquire.errors import RecordingError, ValidationError
-from acquire.recording_format import (
+from mocaprig import __version__
+from mocaprig.acquire.recording_format import (
     FORMAT_VERSION,
     PROFILE,
     LogLevel,
@@ -63,6 +62,7 @@ from acquire.recording_format import (
     SchemaDef,
     StreamStatus,
 )
+from mocaprig.errors import RecordingError, ValidationError
 
 __all__ = [
     "DIAGNOSTICS_TOPIC",
@@ -348,7 +348,7 @@ class Recorder:
         """Declare a stream (an MCAP channel); thread-safe, allowed before or while recording.
 
         Args:
-            topic: MCAP topic (see :func:`acquire.recording_format.topic`).
+            topic: MCAP topic (see :func:`mocaprig.acquire.recording_format.topic`).
             message_type: A payload class of :mod:`acquire.recording_format` (or its schema).
             metadata: Channel metadata (device serial, stream settings), strings only.
             queue_messages: Queue capacity in messages (default: the recorder's).

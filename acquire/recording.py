@@ -34,9 +34,8 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Sch
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from acquire.errors import RecordingError
-from acquire.events import EVENT_DTYPE
-from acquire.recording_format import (
+from mocaprig.acquire.events import EVENT_DTYPE
+from mocaprig.acquire.recording_format import (
     FORMAT_VERSION,
     IMU_DTYPE,
     SPECIAL_DTYPE,
@@ -47,6 +46,7 @@ from acquire.recording_format import (
     TriggerPacket,
     decode_payload,
 )
+from mocaprig.errors import RecordingError
 
 __all__ = [
     "ChannelInfo",
@@ -86,7 +86,7 @@ class RecordedMessage:
     data: bytes = field(repr=False)
 
     def decode(self) -> Any:
-        """The payload as a :mod:`acquire.recording_format` message object."""
+        """The payload as a :mod:`mocaprig.acquire.recording_format` message object."""
         return decode_payload(self.schema_name, self.data)
 
 
@@ -195,7 +195,7 @@ class Recording:
     """A recording opened for reading (a context manager; also usable without ``with``).
 
     Args:
-        path: An MCAP file written by :class:`acquire.recorder.Recorder` (finished or not).
+        path: An MCAP file written by :class:`mocaprig.acquire.recorder.Recorder` (finished or not).
 
     Raises:
         RecordingError: the file is missing, not MCAP, or of a newer major format version.

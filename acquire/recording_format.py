@@ -33,8 +33,8 @@ from google.protobuf.descriptor_pb2 import (  # type: ignore[import-untyped]
 )
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from acquire.errors import RecordingError, ValidationError
-from acquire.events import EVENT_DTYPE, check_events
+from mocaprig.acquire.events import EVENT_DTYPE, check_events
+from mocaprig.errors import RecordingError, ValidationError
 
 __all__ = [
     "EVENT_ENCODING",
@@ -322,13 +322,13 @@ class EventPacket:
     """A packet of DVS events (``mocaprig.EventPacket``, fields of ROS ``EventPacket``).
 
     Attributes:
-        events: :data:`~acquire.events.EVENT_DTYPE` (t µs device clock, untouched).
+        events: :data:`~mocaprig.acquire.events.EVENT_DTYPE` (t µs device clock, untouched).
         width: Sensor columns.
         height: Sensor rows.
         seq: Packet counter of this stream (0, 1, ...; a gap means a dropped packet).
         frame_id: Device name, e.g. ``davis_00000042``.
         t_ns: Optional exact event times (ns, int64, same order as ``events``) for sources finer
-            than the µs of :data:`~acquire.events.EVENT_DTYPE` (e.g. imported RPG text, 9
+            than the µs of :data:`~mocaprig.acquire.events.EVENT_DTYPE` (e.g. imported RPG text, 9
             decimals). When given, ``events["t"] == t_ns // 1000`` (floor) must hold and
             :meth:`encode` stores these ns times; when ``None`` it stores ``events["t"]`` × 1000.
             :meth:`decode` always fills it from the stored ns offsets.
@@ -522,7 +522,7 @@ class TriggerPacket:
 
 @dataclass(frozen=True, slots=True)
 class SyncPulses:
-    """A sync-box ``PULSES`` report (``acquire.syncbox.PulseReport``).
+    """A sync-box ``PULSES`` report (``mocaprig.acquire.syncbox.PulseReport``).
 
     ``count``: pulses of the run (as sent); ``total``: across reconnects; ``t_us``: box clock
     at the last rising edge, µs, unwrapped by the driver (the box's u32 = ``t_us % 2**32``);

@@ -29,7 +29,7 @@ Format (docs/rig-file.md has a commented example)::
     width_us = 100                # 10..half the period
 
 :func:`load_rig_file` reads and validates it; every problem is a
-:class:`~acquire.errors.ValidationError` naming the key, the value and what is allowed.
+:class:`~mocaprig.errors.ValidationError` naming the key, the value and what is allowed.
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, Literal
 
-from acquire.davis240c_config import BiasPreset
-from acquire.depth_camera import ALLOWED_MODES, SensorOptions, StreamConfig
-from acquire.errors import ValidationError
+from mocaprig.acquire.davis240c_config import BiasPreset
+from mocaprig.acquire.depth_camera import ALLOWED_MODES, SensorOptions, StreamConfig
+from mocaprig.errors import ValidationError
 
 __all__ = [
     "RIG_FILE_VERSION",

@@ -9,7 +9,7 @@ device path (``/dev/ttyACM0``, ``COM5``) or any ``serial.serial_for_url`` URL::
         ...
         total = box.stop()
 
-Every failure is a :class:`~acquire.errors.DeviceError` naming the port, what is wrong and what
+Every failure is a :class:`~mocaprig.errors.DeviceError` naming the port, what is wrong and what
 to do. A ``serial.SerialException`` during I/O (cable pulled, board reset) triggers a bounded
 reopen with exponential backoff; a run interrupted that way is not restarted silently unless
 ``restart_after_reopen=True``.
@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Final, Self
 
-from acquire.check import check_positive, check_range
-from acquire.depth_camera import load_mock_factory
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.acquire.depth_camera import load_mock_factory
+from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.timebase import U32Unwrapper
+from mocaprig.validation import check_positive, check_range
 
 __all__ = [
     "BANNER",
@@ -52,7 +53,6 @@ PROTOCOL_VERSION: Final = 1
 BANNER: Final = "MOCAPRIG-SYNCBOX"
 BAUDRATE: Final = 115200
 LINE_MAX: Final = 64
-_WRAP_US: Final = 1 << 32
 
 
 class SyncBoxError(DeviceError):
@@ -154,8 +154,7 @@ class SyncBox:
         self._run: tuple[str, ...] | None = None  # the active START/LISTEN command
         self._total_base = 0
         self._last_count = 0
-        self._t_wrap = 0
-        self._t_last: int | None = None
+        self._unwrap = U32Unwrapper()
         self.reconnects = 0
         self.identity: SyncBoxIdentity | None = None
 
@@ -284,12 +283,9 @@ class SyncBox:
             count, t_us = int(parts[1]), int(parts[2])
         except ValueError:
             return False
-        if self._t_last is not None and t_us < self._t_last - (_WRAP_US >> 1):
-            self._t_wrap += _WRAP_US
-        self._t_last = t_us
         self._last_count = count
         self._reports.append(
-            PulseReport(count, self._total_base + count, t_us + self._t_wrap, time.monotonic_ns())
+            PulseReport(count, self._total_base + count, self._unwrap(t_us), time.monotonic_ns())
         )
         return True
 

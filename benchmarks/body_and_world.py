@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from calib.vicon import read_c3d
-from drivers_mock.scenario import build_scenario
-from drivers_mock.session import simulate_session
-from process.body import (
+from mocaprig.calib.vicon import read_c3d
+from mocaprig.drivers_mock.scenario import build_scenario
+from mocaprig.drivers_mock.session import simulate_session
+from mocaprig.process.body import (
     BodyShape,
     MarkerSet,
     capsules,
@@ -30,7 +30,7 @@ from process.body import (
     marker_positions,
     neutral_pose,
 )
-from process.body.skeleton import DOF_LIMITS_RAD
+from mocaprig.process.body.skeleton import DOF_LIMITS_RAD
 
 
 def best_of(fn: Callable[[], object], *, repeat: int = 7) -> float:
@@ -74,7 +74,7 @@ def main() -> None:
     )  # camera at (0, -3, 1) looking at +Y, image down = world -Z
     k_d415 = np.array([[623.0, 0, 424.0], [0, 623.0, 240.0], [0, 0, 1.0]])
     k_davis = np.array([[243.0, 0, 120.0], [0, 243.0, 90.0], [0, 0, 1.0]])
-    from process.body import render_pinhole
+    from mocaprig.process.body import render_pinhole
 
     t_r848 = best_of(lambda: render_pinhole(caps, k_d415, T_cam_world, 848, 480))
     t_r240 = best_of(lambda: render_pinhole(caps, k_davis, T_cam_world, 240, 180))

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from calib.markers import detect_blobs, measure_frame
-from drivers_mock.d415_render import IrSettings, SceneRenderer
-from drivers_mock.scenario import build_scenario
+from mocaprig.calib.markers import detect_blobs, measure_frame
+from mocaprig.drivers_mock.d415_render import IrSettings, SceneRenderer
+from mocaprig.drivers_mock.scenario import build_scenario
 
 
 def main() -> int:

@@ -2,7 +2,7 @@
 
 For each seed: the default scenario, the simulated Vicon, and one or more D415s rendered by the
 mock renderer at their 30 Hz frame times over the whole session (the slow part: ≈ 0.1–0.2 s a
-frame), markers measured with :func:`calib.markers.measure_frame`. Then claps
+frame), markers measured with :func:`mocaprig.calib.markers.measure_frame`. Then claps
 (:func:`find_claps_vicon`, :func:`find_claps_d415`) → :func:`clock_from_claps` →
 :func:`refine_by_reprojection` with the true extrinsics perturbed by a registration-grade error
 (0.1°, 2 mm), and, for comparison, :func:`refine_by_speed`. Errors are against the true clocks:
@@ -25,14 +25,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib import time_align as ta
-from calib.calibration import ClockMapping
-from calib.markers import MarkerFrame, measure_frame
-from calib.vicon import MarkerTrajectories
-from drivers_mock.clock import DeviceClock
-from drivers_mock.d415_render import IrSettings, SceneRenderer
-from drivers_mock.scenario import Scenario, build_scenario
-from drivers_mock.vicon import simulate_vicon
+from mocaprig.calib import time_align as ta
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.markers import MarkerFrame, measure_frame
+from mocaprig.calib.vicon import MarkerTrajectories
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.d415_render import IrSettings, SceneRenderer
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.drivers_mock.vicon import simulate_vicon
 
 
 def render(sc: Scenario, cam: int, *, seed: int) -> list[MarkerFrame]:

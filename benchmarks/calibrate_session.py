@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from calib.vicon_calibration import calibrate_vicon, evaluate_calibration
-from drivers_mock.session import simulate_session
+from mocaprig.calib.vicon_calibration import calibrate_vicon, evaluate_calibration
+from mocaprig.drivers_mock.session import simulate_session
 
 
 def main() -> None:

@@ -3,7 +3,7 @@
 Builds a realistic polarity-dominated stream the way the device logic serialises it (bursts of
 one row word and several column words, a timestamp word whenever the time changed, a wrap word
 every 32768 µs, a sprinkle of ext-input pulses and IMU samples), then decodes it on one core in
-USB-sized chunks through one :class:`acquire.davis240c_decode.DavisDecoder` (state carried
+USB-sized chunks through one :class:`mocaprig.acquire.davis240c_decode.DavisDecoder` (state carried
 across chunks, as in a live stream). Prints one JSON object as its last line (``events_per_s``).
 """
 
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire.davis240c_decode import DavisDecoder
+from mocaprig.acquire.davis240c_decode import DavisDecoder
 
 
 def polarity_stream(
@@ -97,8 +97,8 @@ def reader_throughput(
     """
     import usb.core
 
-    from acquire.davis240c import Davis240C
-    from drivers_mock.davis240c_usb import Davis240CBackend, SyntheticDavisSource
+    from mocaprig.acquire.davis240c import Davis240C
+    from mocaprig.drivers_mock.davis240c_usb import Davis240CBackend, SyntheticDavisSource
 
     data = np.frombuffer(words.tobytes(), np.uint8)
 

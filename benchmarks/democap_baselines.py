@@ -5,7 +5,7 @@ Trains each network variant (``DemocapConfig.variant``: ``markers-to-pose``, the
 the same seed, the same simulated training data (the batches depend only on the seed, the
 epoch and the step, so every variant sees the same samples in the same order) and the same
 budget (epochs × samples per epoch), then evaluates each on the same held-out test set
-(:func:`process.democap.evaluate`: ``--subjects`` rounds of the six actions on new bodies,
+(:func:`mocaprig.process.democap.evaluate`: ``--subjects`` rounds of the six actions on new bodies,
 ``--frames`` frames per take, ``--cameras`` D415s, fixed ``--test-seed``).
 
 Per variant: MPJPE (17 joints), MPMPE (53 markers; None for ``pose``, which predicts no
@@ -40,14 +40,14 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from process.democap.checkpoint import Checkpoint
-from process.democap.config import VARIANTS, DemocapConfig, Variant, config_by_name
-from process.democap.dataset import make_pool, make_sample, prepare_cloud
-from process.democap.evaluate import evaluate, held_out_pool
-from process.democap.geometry import to_world_frame
-from process.democap.infer import DemocapPredictor, Prediction
-from process.democap.model import build_network
-from process.democap.train import TrainOptions, train
+from mocaprig.process.democap.checkpoint import Checkpoint
+from mocaprig.process.democap.config import VARIANTS, DemocapConfig, Variant, config_by_name
+from mocaprig.process.democap.dataset import make_pool, make_sample, prepare_cloud
+from mocaprig.process.democap.evaluate import evaluate, held_out_pool
+from mocaprig.process.democap.geometry import to_world_frame
+from mocaprig.process.democap.infer import DemocapPredictor, Prediction
+from mocaprig.process.democap.model import build_network
+from mocaprig.process.democap.train import TrainOptions, train
 
 
 class _MeanPose(DemocapPredictor):
@@ -91,7 +91,7 @@ def _mean_pose_reference(args: argparse.Namespace, pool: list[Any]) -> dict[str,
 
 
 def _figures(m: Any) -> dict[str, Any]:
-    """The accuracy figures of a report's metrics (``process.metrics.PoseMetrics``)."""
+    """The accuracy figures of a report's metrics (``mocaprig.process.metrics.PoseMetrics``)."""
     return {
         "mpjpe_mm": m.mpjpe_mm,
         "mpmpe_mm": m.mpmpe_mm,

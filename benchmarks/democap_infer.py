@@ -2,11 +2,11 @@
 and ``paper``.
 
 The frames are the simulated world (``default`` scenario) rendered by the mock D415 renderer
-(:class:`drivers_mock.d415_render.SceneRenderer`, 848×480, the rig's 4 D415s at their true
+(:class:`mocaprig.drivers_mock.d415_render.SceneRenderer`, 848×480, the rig's 4 D415s at their true
 poses and intrinsics, all four exposing together as on hardware sync), one rig instant every
 0.1 s from t = 1 s. All frame sets are rendered before any timing (rendering is not timed).
 Each set goes through :class:`process.democap.live.LivePipeline` exactly as live frames would:
-per camera :func:`calib.markers.measure_frame` (IR blobs, robust depth, deprojection) ->
+per camera :func:`mocaprig.calib.markers.measure_frame` (IR blobs, robust depth, deprojection) ->
 camera to world, capture-box crop, 10 mm merge -> :meth:`DemocapPredictor.predict_many`
 (normalise + render, network, CoM3D + fusion + inverse normalisation, and any further stage
 the predictor reports in ``last_timings_s``).
@@ -14,7 +14,7 @@ the predictor reports in ``last_timings_s``).
 Configurations (:data:`LITE_CONFIGS`), each timed in rounds that interleave them (the machine
 is shared: a load change then hits all of them alike):
 
-* ``live``: :func:`process.democap.live.live_predictor`: the rotation ensemble of
+* ``live``: :func:`mocaprig.process.democap.live.live_predictor`: the rotation ensemble of
   ``LIVE_ROTATIONS`` (2) turns, one network pass per thread, in the default pipeline;
 * ``offline``: ``DemocapPredictor()`` as shipped for offline use (``DEFAULT_ROTATIONS``, 3
   turns, one thread);
@@ -32,7 +32,7 @@ For each:
 
 ``fps`` in the last line's JSON is the end-to-end throughput, 4 IR + depth frames -> world
 joints, of ``live`` (the live predictor, the pipeline's default ``workers``
-:data:`~process.democap.live.DEFAULT_WORKERS`) through the pipelined stream, median over
+:data:`~mocaprig.process.democap.live.DEFAULT_WORKERS`) through the pipelined stream, median over
 rounds, on the machine it runs on, as loaded as it is. Each pass also reports the CPU cores
 it kept busy on average (process CPU time / wall time): on a shared machine, whether the
 second core was there to use at all.
@@ -64,22 +64,22 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from calib.calibration import Calibration, CameraCalibration
-from drivers_mock.d415_render import IrSettings, SceneRenderer
-from drivers_mock.scenario import build_scenario
-from process.body import democap_joints, forward_kinematics
-from process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
-from process.democap.config import CONFIGS
-from process.democap.evaluate import EVAL_JOINTS
-from process.democap.infer import DemocapPredictor
-from process.democap.live import (
+from mocaprig.calib.calibration import Calibration, CameraCalibration
+from mocaprig.drivers_mock.d415_render import IrSettings, SceneRenderer
+from mocaprig.drivers_mock.scenario import build_scenario
+from mocaprig.process.body import democap_joints, forward_kinematics
+from mocaprig.process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
+from mocaprig.process.democap.config import CONFIGS
+from mocaprig.process.democap.evaluate import EVAL_JOINTS
+from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.live import (
     DEFAULT_WORKERS,
     LIVE_ROTATIONS,
     LivePipeline,
     LiveResult,
     cameras_from_calibration,
 )
-from process.democap.model import build_network
+from mocaprig.process.democap.model import build_network
 
 F64 = npt.NDArray[np.float64]
 Pair = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16]]

@@ -1,7 +1,7 @@
 """Does DeMoCap's simulated training data look like what the real measurement pipeline gives?
 
 Compares, on simulated recordings with truth (``mocaprig simulate``: the mock D415 renders IR and
-depth images; :mod:`calib.markers` finds the blobs, reads their depth and lifts them), the
+depth images; :mod:`mocaprig.calib.markers` finds the blobs, reads their depth and lifts them), the
 per-camera and fused marker statistics with those of the marker-level observation model that
 trains DeMoCap (:mod:`process.democap.simdata`), on the *same* poses and the *same* cameras:
 
@@ -10,7 +10,7 @@ trains DeMoCap (:mod:`process.democap.simdata`), on the *same* poses and the *sa
   mid-exposure (``truth/d415_captures.npz`` gives each frame's exposure in session time; the
   scenario is rebuilt from ``truth/scenario.json`` for the skin normals and the body capsules);
   cameras are the *true* poses and intrinsics (no calibration error enters);
-* simdata: :func:`~process.democap.simdata.observe` on the scenario's body, marker set and
+* simdata: :func:`~mocaprig.process.democap.simdata.observe` on the scenario's body, marker set and
   poses at the same instants, seen by the same cameras (``--sim-repeats`` draws per instant).
 
 Both go through the same analysis: per view, blobs are matched to the projected true markers
@@ -23,12 +23,12 @@ in units of the marker's angular radius (≥ 1: the sphere wholly in view, 0: ha
 blob centre error. Blobs matched to no body marker are strays, on the suit (within 30 mm of a
 capsule surface) or off the body (in the recordings: the clapperboard's two markers). Fusion is
 the replay's: camera → world, capture-box crop, 10 mm single-linkage merge over all views (as
-:func:`calib.markers.merge_views`); per instant the points, the markers with a point, the
+:func:`mocaprig.calib.markers.merge_views`); per instant the points, the markers with a point, the
 markers whose detections stay in two or more points, the points with no body marker in them,
 and each point's distance to the nearest true marker.
 
 Also reported: the cloud size and per-view detection of the training distribution itself
-(:func:`process.democap.dataset.make_sample`: random bodies, placements and rigs), and with
+(:func:`mocaprig.process.democap.dataset.make_sample`: random bodies, placements and rigs), and with
 ``--network`` the committed checkpoint's MPJPE on the measured clouds and on simdata's clouds
 of the same instants (does the network meet the same difficulty?).
 
@@ -62,9 +62,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from process.body import Motion, democap_joints, forward_kinematics
-from process.body.surface import capsules
-from process.democap import simdata
+from mocaprig.process.body import Motion, democap_joints, forward_kinematics
+from mocaprig.process.body.surface import capsules
+from mocaprig.process.democap import simdata
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -367,9 +367,9 @@ def _rig(truth_meta: dict[str, Any]) -> list[tuple[str, str, View]]:
 
 def measure_session(folder: Path, every: int, cache: Path | None) -> Session:
     """Measure every ``every``-th instant of a simulated recording (cached as npz)."""
-    from acquire.recording import Recording
-    from calib.markers import frame_times, measure_recording
-    from drivers_mock.truth import read_truth
+    from mocaprig.acquire.recording import Recording
+    from mocaprig.calib.markers import frame_times, measure_recording
+    from mocaprig.drivers_mock.truth import read_truth
 
     truth = read_truth(folder)
     rig = _rig(dict(truth.meta))
@@ -433,8 +433,8 @@ def measure_session(folder: Path, every: int, cache: Path | None) -> Session:
 
 
 def _scenario(folder: Path) -> Any:
-    from drivers_mock.scenario import build_scenario
-    from drivers_mock.truth import read_truth
+    from mocaprig.drivers_mock.scenario import build_scenario
+    from mocaprig.drivers_mock.truth import read_truth
 
     truth = read_truth(folder)
     return build_scenario(truth.scenario_name, seed=truth.seed, seconds=truth.seconds)
@@ -659,7 +659,7 @@ def compare(meas: dict[str, float], sim: dict[str, float]) -> dict[str, dict[str
 
 def training_clouds(samples: int, seed: int) -> dict[str, float]:
     """Cloud size and per-camera detection of the training distribution (dataset.py)."""
-    from process.democap.dataset import make_pool, make_sample
+    from mocaprig.process.democap.dataset import make_pool, make_sample
 
     pool = make_pool(seed, "train", takes=12, seconds=2.0)
     rng = np.random.default_rng(seed)
@@ -683,8 +683,8 @@ def network_errors(measured: Records, simulated: Records, sim_repeats: int) -> d
     simdata's clouds of the same instants: does the network meet the same difficulty?"""
     import torch
 
-    from process.democap.evaluate import EVAL_JOINTS
-    from process.democap.infer import DemocapPredictor
+    from mocaprig.process.democap.evaluate import EVAL_JOINTS
+    from mocaprig.process.democap.infer import DemocapPredictor
 
     torch.set_num_threads(1)
     pred = DemocapPredictor()

@@ -35,9 +35,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire.events import make_events
-from acquire.recorder import Recorder, StreamHandle
-from acquire.recording_format import IMU_DTYPE, EventPacket, ImageMsg, ImuPacket
+from mocaprig.acquire.events import make_events
+from mocaprig.acquire.recorder import Recorder, StreamHandle
+from mocaprig.acquire.recording_format import IMU_DTYPE, EventPacket, ImageMsg, ImuPacket
 
 
 def _depth_like(rng: np.random.Generator, h: int, w: int) -> npt.NDArray[np.uint16]:

@@ -5,7 +5,7 @@ Imports flow one way: ``process -> calib -> acquire``.
 
 from __future__ import annotations
 
-from calib.vicon import (
+from mocaprig.calib.vicon import (
     MarkerTrajectories,
     ViconFileError,
     read_c3d,

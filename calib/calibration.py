@@ -25,7 +25,7 @@ from typing import Any, Final, Literal
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import CalibrationError
+from mocaprig.errors import CalibrationError
 
 __all__ = [
     "FORMAT_VERSION",

@@ -48,9 +48,9 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from acquire.check import check_positive
-from acquire.errors import CalibrationError, ValidationError
-from calib.calibration import Calibration, CameraCalibration
+from mocaprig.calib.calibration import Calibration, CameraCalibration
+from mocaprig.errors import CalibrationError, ValidationError
+from mocaprig.validation import check_positive
 
 __all__ = [
     "ArucoDictionary",

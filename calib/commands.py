@@ -1,7 +1,7 @@
 """``mocaprig vicon ...``: commands over Vicon reference files (C3D, Nexus CSV).
 
 Registered through the ``mocaprig.commands`` entry point ``vicon``. Handlers import
-:mod:`calib.vicon` (numpy, ezc3d) lazily so ``mocaprig --help`` stays fast.
+:mod:`mocaprig.calib.vicon` (numpy, ezc3d) lazily so ``mocaprig --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from acquire.cli import add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json
 
 if TYPE_CHECKING:
-    from calib.vicon import MarkerTrajectories
+    from mocaprig.calib.vicon import MarkerTrajectories
 
 __all__ = ["register_vicon", "vicon_info", "vicon_info_summary"]
 
@@ -110,7 +110,7 @@ def vicon_info_summary(traj: MarkerTrajectories) -> dict[str, Any]:
 
 def vicon_info(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig vicon info``: print a summary (text or JSON); return 0."""
-    from calib.vicon import read_trajectories
+    from mocaprig.calib.vicon import read_trajectories
 
     traj = read_trajectories(
         args.file,

@@ -3,7 +3,7 @@
 Registered through the ``mocaprig.commands`` entry point ``calibrate``. Sub-commands:
 
 * ``vicon``: the D415 poses (and, where available, clocks) against a Vicon trial
-  (:func:`calib.vicon_calibration.calibrate_vicon`);
+  (:func:`mocaprig.calib.vicon_calibration.calibrate_vicon`);
 * ``evaluate``: a calibration scored against a simulated session's truth;
 * ``intrinsics`` and ``board``: ChArUco calibration, from :mod:`calib.commands_charuco` when
   that module is installed.
@@ -21,7 +21,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from acquire.cli import ProgressBar, add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.progress import ProgressBar
 
 __all__ = ["calibrate_evaluate", "calibrate_vicon_command", "register_calibrate"]
 
@@ -128,9 +129,9 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
     ev.set_defaults(func=calibrate_evaluate)
 
     try:
-        charuco = importlib.import_module("calib.commands_charuco")
+        charuco = importlib.import_module("mocaprig.calib.commands_charuco")
     except ImportError:
-        _log.debug("calib.commands_charuco is not available; no intrinsics/board commands")
+        _log.debug("mocaprig.calib.commands_charuco is not available; no intrinsics/board commands")
     else:
         charuco.add_intrinsics_parser(sub)
         charuco.add_board_parser(sub)
@@ -146,18 +147,22 @@ def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], in
 
 def calibrate_vicon_command(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig calibrate vicon``; returns the exit code."""
-    from calib.calibration import write_calibration
-    from calib.vicon_calibration import CalibrationOptions, attach_calibration, calibrate_vicon
+    from mocaprig.calib.calibration import write_calibration
+    from mocaprig.calib.vicon_calibration import (
+        CalibrationOptions,
+        attach_calibration,
+        calibrate_vicon,
+    )
 
     out: Path = args.out
     if out.suffix not in (".toml", ".json"):
-        from acquire.errors import ValidationError
+        from mocaprig.errors import ValidationError
 
         msg = f"--out {out}: a calibration file is .toml or .json"
         raise ValidationError(msg)
     for p in (out, args.attach_to):
         if p is not None and p.exists() and not args.overwrite:
-            from acquire.errors import CalibrationError
+            from mocaprig.errors import CalibrationError
 
             msg = f"{p} exists; pass --overwrite to replace it"
             raise CalibrationError(msg)
@@ -182,7 +187,7 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
         )
     figures: list[str] = []
     if args.report is not None:
-        from calib.report import write_report
+        from mocaprig.calib.report import write_report
 
         figures = [str(p) for p in write_report(result, args.report, overwrite=args.overwrite)]
     summary = result.summary()
@@ -214,8 +219,8 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
 
 def calibrate_evaluate(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig calibrate evaluate``; returns 0."""
-    from calib.calibration import read_calibration
-    from calib.vicon_calibration import evaluate_calibration
+    from mocaprig.calib.calibration import read_calibration
+    from mocaprig.calib.vicon_calibration import evaluate_calibration
 
     ev = evaluate_calibration(read_calibration(args.calibration), args.truth)
     if args.json:

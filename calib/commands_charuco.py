@@ -1,9 +1,9 @@
 """``mocaprig calibrate intrinsics | board``: ChArUco calibration from a recording.
 
-:mod:`calib.commands_calibrate` creates the ``calibrate`` group and calls
+:mod:`mocaprig.calib.commands_calibrate` creates the ``calibrate`` group and calls
 :func:`add_intrinsics_parser` and :func:`add_board_parser`. The handlers are thin layers over
 :func:`calibrate_intrinsics_command` and :func:`calibrate_board_command` (typed, returning an exit
-code), which read images only through :class:`acquire.recording.Recording` and call
+code), which read images only through :class:`mocaprig.acquire.recording.Recording` and call
 :mod:`calib.charuco`. Images: D415 left IR (``/d415/<serial>/ir``, emitter off) and DAVIS APS
 frames (``/davis/<serial>/frame``). Views of different cameras are paired by their log time (the
 recording PC's one clock), so hold the board still for longer than ``--max-skew-ms``.
@@ -18,11 +18,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from acquire.cli import ProgressBar, add_json_flag, emit_json
-from acquire.errors import CalibrationError, ValidationError
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.errors import CalibrationError, ValidationError
+from mocaprig.progress import ProgressBar
 
 if TYPE_CHECKING:
-    from calib.charuco import BoardView, CharucoBoardSpec
+    from mocaprig.calib.charuco import BoardView, CharucoBoardSpec
 
 __all__ = [
     "add_board_parser",
@@ -112,8 +113,8 @@ def read_board_views(
             lists the topics).
         CalibrationError: the topic holds no image.
     """
-    from acquire.recording import Recording
-    from calib.charuco import detect_charuco
+    from mocaprig.acquire.recording import Recording
+    from mocaprig.calib.charuco import detect_charuco
 
     if every < 1:
         msg = f"--every must be >= 1, got {every}"
@@ -157,7 +158,12 @@ def calibrate_intrinsics_command(
     as_json: bool = False,
 ) -> int:
     """``mocaprig calibrate intrinsics``: one camera's intrinsics; returns the exit code."""
-    from calib.charuco import board_image, calibrate_intrinsics, read_board_spec, write_intrinsics
+    from mocaprig.calib.charuco import (
+        board_image,
+        calibrate_intrinsics,
+        read_board_spec,
+        write_intrinsics,
+    )
 
     spec = read_board_spec(board)
     summary: dict[str, Any] = {"board": spec.to_dict()}
@@ -255,9 +261,9 @@ def calibrate_board_command(
     as_json: bool = False,
 ) -> int:
     """``mocaprig calibrate board``: camera poses from shared board views; returns the exit code."""
-    from acquire import __version__
-    from calib.calibration import write_calibration
-    from calib.charuco import calibrate_extrinsics, read_board_spec, read_intrinsics
+    from mocaprig import __version__
+    from mocaprig.calib.calibration import write_calibration
+    from mocaprig.calib.charuco import calibrate_extrinsics, read_board_spec, read_intrinsics
 
     if out.suffix not in (".toml", ".json"):
         msg = f"--out {out}: a calibration file is .toml or .json"

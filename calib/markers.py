@@ -44,11 +44,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from acquire.check import check_finite, check_positive, check_shape
-from acquire.cli import ProgressBar
-from acquire.errors import CalibrationError, ValidationError
-from acquire.recording import Recording
-from acquire.recording_format import topic
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import topic
+from mocaprig.errors import CalibrationError, ValidationError
+from mocaprig.progress import ProgressBar
+from mocaprig.timebase import unwrap_u32
+from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = [
     "DEFAULT_THRESHOLD",
@@ -415,16 +416,6 @@ def _d415_cameras(rec: Recording) -> list[str]:
     return out
 
 
-def _unwrap_us(stamps_us: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
-    """Undo the u32 µs wrap of a sequence of D415 hardware stamps (in receive order)."""
-    if stamps_us.size == 0:
-        return stamps_us
-    step = np.diff(stamps_us)
-    wraps = np.concatenate([[0], np.cumsum(step < -(_U32_US // 2))])
-    out: npt.NDArray[np.int64] = stamps_us + wraps * _U32_US
-    return out
-
-
 def measure_recording(
     rec: Recording,
     *,
@@ -620,7 +611,7 @@ def _plan_camera(
             )
     scale = next((r[4] for r in rows if r[4] > 0), 0.001)
     if rows and all(r[3] is not None for r in rows):
-        stamps = _unwrap_us(np.array([r[3] for r in rows], dtype=np.int64))
+        stamps = unwrap_u32(np.array([r[3] for r in rows], dtype=np.int64))
         t_dev = stamps * 1000
         seqs = [(r[0], r[1], r[2]) for r in rows]
     else:

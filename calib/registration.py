@@ -39,8 +39,8 @@ from scipy.sparse import lil_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from acquire.check import check_positive, check_range, check_shape
-from acquire.errors import CalibrationError, ValidationError
+from mocaprig.errors import CalibrationError, ValidationError
+from mocaprig.validation import check_positive, check_range, check_shape
 
 __all__ = [
     "AlignmentResult",

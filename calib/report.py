@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.errors import CalibrationError
-from calib.registration import project_points
-from calib.vicon_calibration import ViconCalibrationResult
+from mocaprig.calib.registration import project_points
+from mocaprig.calib.vicon_calibration import ViconCalibrationResult
+from mocaprig.errors import CalibrationError
 
 __all__ = ["write_report"]
 

@@ -52,7 +52,7 @@ The recipe (calibration-vicon.md §3.1, §0 items 11–12):
    Edges are paired with the master's frames through a prior mapping good to a quarter period
    (the video clock), and a line device → Vicon is fitted: µs-level offset and sub-ppm drift.
 
-Clock mappings are :class:`calib.calibration.ClockMapping`:
+Clock mappings are :class:`mocaprig.calib.calibration.ClockMapping`:
 ``t_ref = t_dev + offset_ns + drift_ppm·1e-6·(t_dev − anchor_ns)``.
 """
 
@@ -70,11 +70,11 @@ import numpy.typing as npt
 from scipy.optimize import least_squares, minimize
 from scipy.spatial import cKDTree
 
-from acquire.errors import CalibrationError, ValidationError
-from acquire.events import check_events
-from calib.calibration import ClockMapping
-from calib.markers import MarkerFrame
-from calib.vicon import AnalogChannels, MarkerTrajectories
+from mocaprig.acquire.events import check_events
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.markers import MarkerFrame
+from mocaprig.calib.vicon import AnalogChannels, MarkerTrajectories
+from mocaprig.errors import CalibrationError, ValidationError
 
 __all__ = [
     "VICON_CLAPPER_LABELS",
@@ -246,7 +246,7 @@ def find_claps_vicon(
     of the closing reaches the contact distance (a line with fewer than 4 samples).
 
     Args:
-        traj: Trajectories (metres), e.g. from :func:`calib.vicon.read_trajectories`.
+        traj: Trajectories (metres), e.g. from :func:`mocaprig.calib.vicon.read_trajectories`.
         labels: The moving and the fixed clapper marker (exact or without subject prefix).
         open_min_m: Least opening beyond contact that counts as a clap (m).
         fit_samples: Pre-contact samples fitted.
@@ -731,7 +731,7 @@ def find_claps_davis(
     (:func:`clock_from_pulses`) for the DAVIS clock, this is a cross-check.
 
     Args:
-        events: Canonical :data:`acquire.events.EVENT_DTYPE` events (device µs), sorted.
+        events: Canonical :data:`mocaprig.acquire.events.EVENT_DTYPE` events (device µs), sorted.
         device: Label for the result.
         bin_us, cell_px, window_us: Rate binning.
         max_claps: How many claps to return at most.

@@ -85,7 +85,7 @@ from typing import Literal, TypeAlias
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import CalibrationError, ValidationError
+from mocaprig.errors import CalibrationError, ValidationError
 
 __all__ = [
     "AnalogChannels",
@@ -1947,7 +1947,7 @@ def write_c3d(
     import ezc3d
     from ezc3d import ezc3d as ezc3d_core
 
-    from acquire import __version__
+    from mocaprig import __version__
 
     t = trajectories
     per_m = 1.0 / _METRES_PER_UNIT[unit]

@@ -5,7 +5,7 @@
 1. **Vicon**: the trial's trajectories (metres), frame times on the Vicon clock
    ``(first_frame − 1 + i)/rate``; a unit check on the marker cloud's extent; the **static
    start** (markers within ``static_tolerance_m`` of the first frames) and its median cloud; the
-   claps (``calib.time_align.find_claps_vicon``; none is an error).
+   claps (``mocaprig.calib.time_align.find_claps_vicon``; none is an error).
 2. **Reading**: the recording is measured (``calib.markers.measure_frame``) only in device-time
    windows — the first ``head_window_s``, around each Vicon clap, and ``extra_windows`` — found
    by bisection over the host log time, all cameras in one pass per window.
@@ -15,7 +15,7 @@
 4. **Clock** (``clock_method``): reprojection offsets of 0.5 s stretches of frames per camera;
    the cameras whose frames pair with one another's (hardware sync, checked, not assumed) share
    one line through all their stretches (offset, drift) composed with each camera's tie to the
-   pivot camera (:func:`_pooled_clocks`); optionally refined by ``calib.time_align``.
+   pivot camera (:func:`_pooled_clocks`); optionally refined by ``mocaprig.calib.time_align``.
    With a **sync channel** in the Vicon trial (``CalibrationOptions.sync_channel``, default
    ``D415_SYNC``: the sync box's toggle output on a Vicon analog input, docs/wiring.md §7),
    the master's clock is instead the line through the channel's edges paired with its frames
@@ -57,21 +57,27 @@ from typing import Any, Final, Literal
 import numpy as np
 import numpy.typing as npt
 
-from acquire import __version__
-from acquire.check import check_positive
-from acquire.errors import CalibrationError, RecordingError, ValidationError
-from acquire.recording import Recording
-from acquire.recording_format import topic
-from calib.calibration import Calibration, CameraCalibration, ClockMapping, calibration_bytes
-from calib.markers import MarkerFrame
-from calib.registration import (
+from mocaprig import __version__
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import topic
+from mocaprig.calib.calibration import (
+    Calibration,
+    CameraCalibration,
+    ClockMapping,
+    calibration_bytes,
+)
+from mocaprig.calib.markers import MarkerFrame
+from mocaprig.calib.registration import (
     CameraRegistration,
     project_points,
     register_camera,
     rotation_error_deg,
 )
-from calib.time_align import ClapDetection, SyncEdges
-from calib.vicon import MarkerTrajectories
+from mocaprig.calib.time_align import ClapDetection, SyncEdges
+from mocaprig.calib.vicon import MarkerTrajectories
+from mocaprig.errors import CalibrationError, RecordingError, ValidationError
+from mocaprig.timebase import unwrap_u32_from
+from mocaprig.validation import check_positive
 
 __all__ = [
     "ATTACHMENT_NAME",
@@ -115,7 +121,7 @@ class CalibrationOptions:
             motion onset (coarse clock) and usually the first clap (s).
         clock_method: ``"reprojection"``: offsets of the Vicon markers' reprojection over
             chunks of frames, a line through them; ``"claps+speed"``: that as the prior, then
-            :mod:`calib.time_align` (claps, speed cross-correlation).
+            :mod:`mocaprig.calib.time_align` (claps, speed cross-correlation).
         max_marker_speed_m_s: Markers moving faster are left out of the final bundle
             adjustment (m/s).
         min_area_ratio: Blobs whose area × depth² is below this fraction of the camera's median
@@ -394,10 +400,8 @@ class _Probe:
 
 
 def _unwrap_ns(stamp_us: int, anchor_us: int) -> int:
-    """Device ns of a u32 µs stamp, taken at or after the camera's first stamp ``anchor_us``
-    (recordings shorter than one wrap, 71.6 min)."""
-    k = -((stamp_us - anchor_us) // _U32_US)
-    return (stamp_us + max(k, 0) * _U32_US) * 1000
+    """Device ns of a u32 µs stamp, taken at or after the camera's first stamp ``anchor_us``."""
+    return unwrap_u32_from(stamp_us, anchor_us) * 1000
 
 
 def _probe(rec: Recording, cam: _Cam, log_ns: int, anchor_us: int) -> _Probe | None:
@@ -448,7 +452,7 @@ def _read_frames(
 ) -> dict[str, list[MarkerFrame]]:
     """Measure the D415 frames with messages in ``[log_lo, log_hi]`` whose device time lies in
     their camera's ``dev_windows`` entry; one pass over the recording's chunks for all cameras."""
-    from calib.markers import measure_frame
+    from mocaprig.calib.markers import measure_frame
 
     by_topic: dict[str, tuple[_Cam, str]] = {}
     for c in cams:
@@ -614,7 +618,7 @@ def _fit_offset(
     the offset (ms). Returns (offset ns, 1σ ns, pairs); σ is inf without motion."""
     from scipy.optimize import least_squares
 
-    from calib.registration import match_markers
+    from mocaprig.calib.registration import match_markers
 
     t_dev = np.array([f.t_dev_ns for f in frames], dtype=np.float64)
     delta = float(delta0_ns)
@@ -671,7 +675,7 @@ def _davis_pulse_inputs(
     starts they mark, with that master's frame delay (half its exposure: a D415 stamps frames
     mid-exposure). Rising-edge events (type 2) are used as they are; whole pulses (type 4,
     stamped at the trailing edge) are moved back by ``sync_pulse_us``."""
-    from acquire.davis240c_decode import SpecialType
+    from mocaprig.acquire.davis240c_decode import SpecialType
 
     meta = rec.metadata()
     master, delay, why = None, 0, ""
@@ -729,7 +733,7 @@ def _davis_clock(
         CalibrationError: too few edges or frames, the train already running at the reset, or
             a failed pulse fit (from ``clock_from_pulses``).
     """
-    from calib.time_align import clock_from_pulses
+    from mocaprig.calib.time_align import clock_from_pulses
 
     edges = pulses.edges_ns
     if edges.size < 10 or master_frames_ns.size < 10:
@@ -774,8 +778,8 @@ class _SyncInputs:
 def _sync_channel_edges(vicon_path: Path, opt: CalibrationOptions) -> tuple[SyncEdges | None, str]:
     """The edges of the Vicon trial's sync channel (Vicon clock), or ``None`` and a note saying
     why not (option off, no analog section or no such channel, unreadable or flat channel)."""
-    from calib.time_align import analog_times_ns, find_sync_edges
-    from calib.vicon import ViconFileError, read_c3d_analogs
+    from mocaprig.calib.time_align import analog_times_ns, find_sync_edges
+    from mocaprig.calib.vicon import ViconFileError, read_c3d_analogs
 
     label = opt.sync_channel
     fallback = "the D415 clocks come from the video"
@@ -884,7 +888,7 @@ def _sync_clocks(
     frame off, the mapping is a whole period out. So each camera's mapping is moved by the
     number of edge periods (±:data:`_SYNC_PERIOD_SHIFTS`) whose ``score`` (the reprojection cost
     of its frames) is lowest; no move on a tie."""
-    from calib.time_align import clock_from_sync_edges
+    from mocaprig.calib.time_align import clock_from_sync_edges
 
     out = dict(mappings)
     m, edges = sync.master, sync.edges
@@ -1010,8 +1014,8 @@ def calibrate_vicon(
             markers, no alignment, or (without ``force``) a camera above the residual
             thresholds; the message names the camera and the cause.
     """
-    from calib.time_align import find_claps_vicon, vicon_times_ns
-    from calib.vicon import read_trajectories
+    from mocaprig.calib.time_align import find_claps_vicon, vicon_times_ns
+    from mocaprig.calib.vicon import read_trajectories
 
     opt = options or CalibrationOptions()
     steps = 7
@@ -1611,11 +1615,11 @@ def _time_align_clock(
     traj: MarkerTrajectories,
     prior: ClockMapping,
 ) -> ClockMapping:
-    """The clock from :mod:`calib.time_align`: the camera's claps paired with the Vicon's
+    """The clock from :mod:`mocaprig.calib.time_align`: the camera's claps paired with the Vicon's
     (offset, and drift from two claps), then refined by the marker-speed correlation over the
     frames read. Falls back to ``prior`` (the reprojection clock) for a step that fails, and
     says so in the log."""
-    from calib.time_align import (
+    from mocaprig.calib.time_align import (
         clock_from_claps,
         find_claps_d415,
         refine_by_speed,

@@ -6,13 +6,13 @@ constants. Nothing in ``acquire``, ``calib`` or ``process`` imports this package
 
 from __future__ import annotations
 
-from drivers_mock.clapperboard import CLAPPER_MARKERS, Clapperboard, make_clapperboard
-from drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
-from drivers_mock.d415 import MockD415, MockD415Rig, mock_cameras
-from drivers_mock.davis240c_sim import DavisSimulator, simulate_davis
-from drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, mock_backend
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import (
+from mocaprig.drivers_mock.clapperboard import CLAPPER_MARKERS, Clapperboard, make_clapperboard
+from mocaprig.drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from mocaprig.drivers_mock.d415 import MockD415, MockD415Rig, mock_cameras
+from mocaprig.drivers_mock.davis240c_sim import DavisSimulator, simulate_davis
+from mocaprig.drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, mock_backend
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import (
     D415Spec,
     DavisSpec,
     PinholeCamera,
@@ -22,11 +22,11 @@ from drivers_mock.rig import (
     look_at,
     project,
 )
-from drivers_mock.scenario import SCENARIOS, Scenario, WorldSample, build_scenario
-from drivers_mock.session import SimulationResult, simulate_session
-from drivers_mock.syncbox import MockSyncBox, mock_syncbox
-from drivers_mock.truth import Truth, ViconTruth, read_truth, write_truth
-from drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d, write_nexus_csv
+from mocaprig.drivers_mock.scenario import SCENARIOS, Scenario, WorldSample, build_scenario
+from mocaprig.drivers_mock.session import SimulationResult, simulate_session
+from mocaprig.drivers_mock.syncbox import MockSyncBox, mock_syncbox
+from mocaprig.drivers_mock.truth import Truth, ViconTruth, read_truth, write_truth
+from mocaprig.drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d, write_nexus_csv
 
 __all__ = [
     "CLAPPER_MARKERS",

@@ -38,10 +38,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from calib.charuco import CharucoBoardSpec, board_image
-from drivers_mock.rig import PinholeCamera, Rig, default_rig, project
-from drivers_mock.scenario import stream_rng
+from mocaprig.calib.charuco import CharucoBoardSpec, board_image
+from mocaprig.drivers_mock.rig import PinholeCamera, Rig, default_rig, project
+from mocaprig.drivers_mock.scenario import stream_rng
+from mocaprig.errors import ValidationError
 
 __all__ = [
     "BoardRecording",
@@ -460,8 +460,8 @@ def write_board_recording(
     Raises:
         RecordingError: ``path`` exists (never overwritten).
     """
-    from acquire.recorder import Recorder
-    from acquire.recording_format import ImageMsg, topic
+    from mocaprig.acquire.recorder import Recorder
+    from mocaprig.acquire.recording_format import ImageMsg, topic
 
     rig = default_rig(stream_rng(seed, "rig"))
     cams: list[tuple[str, PinholeCamera]] = []

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = ["CLAPPER_MARKERS", "Clapperboard", "make_clapperboard"]
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = ["DeviceClock", "d415_clock", "davis_clock", "vicon_clock"]
 

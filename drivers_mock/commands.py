@@ -10,10 +10,11 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from acquire.cli import ProgressBar, add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.progress import ProgressBar
 
 if TYPE_CHECKING:
-    from drivers_mock.session import Device
+    from mocaprig.drivers_mock.session import Device
 
 __all__ = ["register_demo", "register_simulate"]
 
@@ -44,7 +45,7 @@ tpose (static). The same --seed always gives the same world.
 
 def register_simulate(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``mocaprig simulate``."""
-    from drivers_mock.scenario import SCENARIOS
+    from mocaprig.drivers_mock.scenario import SCENARIOS
 
     p = subparsers.add_parser(
         "simulate",
@@ -92,8 +93,8 @@ def register_simulate(subparsers: argparse._SubParsersAction[argparse.ArgumentPa
 
 
 def _parse_devices(text: str) -> tuple[Device, ...]:
-    from acquire.errors import ValidationError
-    from drivers_mock.session import DEVICES
+    from mocaprig.drivers_mock.session import DEVICES
+    from mocaprig.errors import ValidationError
 
     if text.strip().lower() == "none":
         return ()
@@ -108,7 +109,7 @@ def _parse_devices(text: str) -> tuple[Device, ...]:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from drivers_mock.session import simulate_session
+    from mocaprig.drivers_mock.session import simulate_session
 
     result = simulate_session(
         args.out,
@@ -202,7 +203,7 @@ def register_demo(subparsers: argparse._SubParsersAction[argparse.ArgumentParser
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from drivers_mock.demo import run_demo
+    from mocaprig.drivers_mock.demo import run_demo
 
     report = run_demo(
         args.out,

@@ -3,7 +3,7 @@
 :func:`mock_cameras` (entry point ``mocaprig.mocks: d415``) returns one :class:`MockD415` per
 rig D415 (master first), all sharing one :class:`MockD415Rig`: one world (a seeded
 :class:`~drivers_mock.scenario.Scenario`), one master pulse timeline, one USB bandwidth budget.
-Images come from :mod:`drivers_mock.d415_render`; this module owns timing, sync and faults.
+Images come from :mod:`mocaprig.drivers_mock.d415_render`; this module owns timing, sync and faults.
 
 Timing and sync (realsense-d415.md §2.3–§2.5, §4.5)
 =====================================================
@@ -86,7 +86,7 @@ from typing import Any, Final, Literal, Self, get_args
 
 import numpy as np
 
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     D415_PRODUCT_NAME,
     CameraInfo,
     D415Frame,
@@ -101,8 +101,7 @@ from acquire.depth_camera import (
     TimestampDomain,
     check_sync_mode,
 )
-from acquire.errors import DeviceError, ValidationError
-from drivers_mock.d415_render import (
+from mocaprig.drivers_mock.d415_render import (
     DepthModel,
     IrModel,
     IrSettings,
@@ -112,8 +111,9 @@ from drivers_mock.d415_render import (
     SceneRenderer,
     mode_intrinsics,
 )
-from drivers_mock.rig import D415Spec
-from drivers_mock.scenario import Scenario, build_scenario, stream_rng
+from mocaprig.drivers_mock.rig import D415Spec
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario, stream_rng
+from mocaprig.errors import DeviceError, ValidationError
 
 __all__ = [
     "FAULT_KINDS",

@@ -5,8 +5,8 @@ Everything follows realsense-d415.md ("the note"); model values cite its section
 Scene
 =====
 
-* the actor's 22 body capsules (:func:`process.body.surface.capsules`), rendered with
-  :func:`process.body.surface.render_pinhole`;
+* the actor's 22 body capsules (:func:`mocaprig.process.body.surface.capsules`), rendered with
+  :func:`mocaprig.process.body.surface.render_pinhole`;
 * the clapperboard's two arms as thin capsules (three side by side per arm, 10 mm thick, 40 mm
   wide) and its two markers;
 * a static room, a box ``±room_half_m`` wide and ``room_height_m`` tall (floor, four walls,
@@ -74,14 +74,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_range
-from acquire.errors import ValidationError
-from drivers_mock.scenario import stream_rng
+from mocaprig.drivers_mock.scenario import stream_rng
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_range
 
 if TYPE_CHECKING:
-    from drivers_mock.rig import D415Spec
-    from drivers_mock.scenario import Scenario
-    from process.body.surface import Capsules
+    from mocaprig.drivers_mock.rig import D415Spec
+    from mocaprig.drivers_mock.scenario import Scenario
+    from mocaprig.process.body.surface import Capsules
 
 __all__ = [
     "CLAPPER_SEGMENT",
@@ -591,8 +591,8 @@ class SceneRenderer:
             settings: Exposure, gain and projector state.
             rng: The frame's generator (noise, marker depth variants).
         """
-        from process.body.kinematics import forward_kinematics
-        from process.body.surface import Capsules, capsules
+        from mocaprig.process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.surface import Capsules, capsules
 
         exp_ns = int(settings.exposure_us) * 1000
         t_mid = int(t_start_ns) + exp_ns // 2
@@ -691,7 +691,7 @@ class SceneRenderer:
         Only the capsules' pixel box is ray-cast. ``"fast"`` casts every second pixel in each
         direction and fills each 2×2 block from the hit's tangent plane (exact for planes).
         """
-        from process.body.surface import render_pinhole
+        from mocaprig.process.body.surface import render_pinhole
 
         empty_i = np.zeros(0, np.int64)
         empty = (empty_i, empty_i, np.zeros(0, np.float32), empty_i, np.zeros((0, 3), np.float32))

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import ValidationError
-from acquire.events import EVENT_DTYPE
-from drivers_mock.davis_activity import ApsExposure, DavisActivity, ExtInputEdge
+from mocaprig.acquire.events import EVENT_DTYPE
+from mocaprig.drivers_mock.davis_activity import ApsExposure, DavisActivity, ExtInputEdge
+from mocaprig.errors import ValidationError
 
 __all__ = [
     "DAVIS240C_COLUMNS",

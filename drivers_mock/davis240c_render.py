@@ -7,7 +7,7 @@ Event cameras only see brightness *changes*, so what matters is texture and cont
   fixed to its joint frame (stripes or a checker, plus low-frequency noise, Michelson contrast
   20–60 %), so the texture moves and twists with the segment;
 * **the clapperboard**: each arm a thin rod (radius = the arm thickness) with black/white stripes
-  along the arm, hinged as :class:`drivers_mock.clapperboard.Clapperboard` says;
+  along the arm, hinged as :class:`mocaprig.drivers_mock.clapperboard.Clapperboard` says;
 * **the room**: an infinite floor (``z = 0``, 0.5 m tiles) and a back wall behind the actor
   (``y = -2.5 m``, a 0.3 m checker), both with low-frequency noise;
 * **light**: ambient plus Lambertian from one fixed directional light (no shadows), optional
@@ -33,10 +33,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_positive, check_range
-from acquire.errors import ValidationError
-from drivers_mock.rig import project
-from drivers_mock.scenario import Scenario
+from mocaprig.drivers_mock.rig import project
+from mocaprig.drivers_mock.scenario import Scenario
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_positive, check_range
 
 __all__ = [
     "DAVIS_SHAPE",
@@ -238,7 +238,7 @@ class DavisRenderer:
     """
 
     def __init__(self, scenario: Scenario, *, look: DavisLook | None = None) -> None:
-        from process.body.surface import capsule_template
+        from mocaprig.process.body.surface import capsule_template
 
         self.scenario = scenario
         self.look = DavisLook() if look is None else look
@@ -360,7 +360,7 @@ class DavisRenderer:
 
     def frames(self, t_ns: npt.ArrayLike) -> _Frames:
         """Rigid frames and capsule end points of all parts at session times (1-D int ns)."""
-        from process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.kinematics import forward_kinematics
 
         t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         kin = forward_kinematics(self.scenario.pose(t), self.scenario.shape)
@@ -438,7 +438,7 @@ class DavisRenderer:
         return out
 
     def _render_one(self, fr: _Frames, i: int) -> F64:
-        from process.body.surface import Capsules, render_pinhole
+        from mocaprig.process.body.surface import Capsules, render_pinhole
 
         n_parts = self._radii.shape[0]
         caps = Capsules(

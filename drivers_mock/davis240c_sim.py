@@ -1,7 +1,7 @@
 """DAVIS240C sensor simulator: DVS events, APS exposures, IMU samples and trigger edges.
 
 Implements :class:`drivers_mock.davis_activity.DavisActivitySource` from the simulated world
-(:class:`drivers_mock.scenario.Scenario`), seen through :class:`DavisRenderer`
+(:class:`mocaprig.drivers_mock.scenario.Scenario`), seen through :class:`DavisRenderer`
 (``davis240c_render.py``: textured capsule body, clapperboard, textured room, Lambert light).
 
 **DVS** (ESIM, eventcap-method.md §4.1 and §4.4):
@@ -71,24 +71,24 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_range
-from acquire.errors import ValidationError
-from acquire.events import make_events
-from drivers_mock.clock import _hash_normal
-from drivers_mock.davis240c_render import (
+from mocaprig.acquire.events import make_events
+from mocaprig.drivers_mock.clock import _hash_normal
+from mocaprig.drivers_mock.davis240c_render import (
     DAVIS_SHAPE,
     DavisLook,
     DavisRenderer,
     log_intensity,
 )
-from drivers_mock.davis_activity import (
+from mocaprig.drivers_mock.davis_activity import (
     EXT_INPUT_DTYPE,
     IMU_DTYPE,
     ApsExposure,
     DavisActivity,
     ExtInputEdge,
 )
-from drivers_mock.scenario import Scenario
+from mocaprig.drivers_mock.scenario import Scenario
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_range
 
 __all__ = [
     "DavisSimulator",
@@ -288,7 +288,7 @@ class DavisSimulator:
             otherwise.
         sync_source: The sync master's pulse timeline, ``f(t_ns) ->`` the first rising edge
             at or after session time ``t_ns`` (ns), or ``None`` when there are no more (e.g.
-            the master :class:`drivers_mock.d415.MockD415`'s ``pulse_at_or_after``, so the
+            the master :class:`mocaprig.drivers_mock.d415.MockD415`'s ``pulse_at_or_after``, so the
             DAVIS sees the pulses the mock D415s use). Default: the master streams for the
             whole session with pulse ``k`` at ``k · 1e9 / rate_hz`` ns of its own clock.
 

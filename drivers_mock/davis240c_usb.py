@@ -9,7 +9,7 @@ from the driver, so a test can catch the two disagreeing:
   (512 bytes; the debug endpoint 0x81 is FX3-only, §1.2), string 3 = the 8-character serial;
 * vendor requests (§2): 0xBF OUT/IN with 4-byte big-endian values (other lengths stall), 0xC2
   OUT batches of 6-byte entries applied in order; the register file of
-  :mod:`drivers_mock.davis240c_registers`;
+  :mod:`mocaprig.drivers_mock.davis240c_registers`;
 * the data path (§5, §7, §12): nothing reaches EP 0x82 unless MUX RUN and USB RUN are set; the
   timestamp counter runs only with MUX TIMESTAMP_RUN; DVS and APS need RUN_CHIP and their own
   RUN bit, the IMU one of its RUN_* bits, the external input RUN_DETECTOR; MUX TIMESTAMP_RESET
@@ -42,10 +42,9 @@ import numpy.typing as npt
 import usb.backend
 import usb.core
 
-from acquire.errors import ValidationError
-from acquire.events import empty_events, make_events
-from drivers_mock.davis240c_encoder import DavisWordEncoder, EncoderConfig
-from drivers_mock.davis240c_registers import (
+from mocaprig.acquire.events import empty_events, make_events
+from mocaprig.drivers_mock.davis240c_encoder import DavisWordEncoder, EncoderConfig
+from mocaprig.drivers_mock.davis240c_registers import (
     APS,
     DVS,
     EXTINPUT,
@@ -55,7 +54,7 @@ from drivers_mock.davis240c_registers import (
     DavisModule,
     RegisterFile,
 )
-from drivers_mock.davis_activity import (
+from mocaprig.drivers_mock.davis_activity import (
     EXT_INPUT_DTYPE,
     IMU_DTYPE,
     ApsExposure,
@@ -63,10 +62,11 @@ from drivers_mock.davis_activity import (
     DavisActivitySource,
     ExtInputEdge,
 )
+from mocaprig.errors import ValidationError
 
 if TYPE_CHECKING:
-    from drivers_mock.clock import DeviceClock
-    from drivers_mock.scenario import Scenario
+    from mocaprig.drivers_mock.clock import DeviceClock
+    from mocaprig.drivers_mock.scenario import Scenario
 
 __all__ = [
     "DAVIS240C_PID",
@@ -1046,7 +1046,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
 def _simulator_source(world: Scenario) -> DavisActivitySource:
     """Engineer C's renderer-backed ``DavisSimulator`` of ``world``."""
     # Imported by name so that the device model does not depend on the renderer's imports.
-    sim = importlib.import_module("drivers_mock.davis240c_sim")
+    sim = importlib.import_module("mocaprig.drivers_mock.davis240c_sim")
     source: DavisActivitySource = sim.DavisSimulator(world)
     return source
 
@@ -1068,7 +1068,7 @@ def mock_backend(
         source: What the sensor sees; default: ``DavisSimulator`` (davis240c_sim.py) of
             ``scenario`` when that module is installed, else :class:`SyntheticDavisSource`.
         scenario: Scenario name, built with ``seed`` and ``seconds`` (30 s when ``None``) for
-            the simulator, or a built :class:`~drivers_mock.scenario.Scenario`.
+            the simulator, or a built :class:`~mocaprig.drivers_mock.scenario.Scenario`.
         seed: Seed of the world and of the device noise.
         seconds: Session length (the world is quiet afterwards; ``None`` = endless).
         serial: 8-character serial; default the rig's DAVIS serial, or one derived from
@@ -1079,9 +1079,12 @@ def mock_backend(
             ``address``, ``port_number``).
     """
     world: Scenario | None = None if isinstance(scenario, str) else scenario
-    if source is None and importlib.util.find_spec("drivers_mock.davis240c_sim") is not None:
+    if (
+        source is None
+        and importlib.util.find_spec("mocaprig.drivers_mock.davis240c_sim") is not None
+    ):
         if world is None:
-            from drivers_mock.scenario import build_scenario
+            from mocaprig.drivers_mock.scenario import build_scenario
 
             length = _DEFAULT_SECONDS if seconds is None else seconds
             world = build_scenario(str(scenario), seed=seed, seconds=length)

@@ -15,9 +15,9 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_shape
-from acquire.errors import ValidationError
-from acquire.events import check_events, empty_events
+from mocaprig.acquire.events import check_events, empty_events
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_shape
 
 __all__ = [
     "EXT_INPUT_DTYPE",
@@ -77,7 +77,7 @@ class DavisActivity:
     Attributes:
         t0_us: Window start (µs).
         t1_us: Window end (µs).
-        events: DVS events, :data:`acquire.events.EVENT_DTYPE`, sorted by ``t``.
+        events: DVS events, :data:`mocaprig.acquire.events.EVENT_DTYPE`, sorted by ``t``.
         exposures: APS exposures that *end* inside the window, in time order.
         imu: IMU samples (:data:`IMU_DTYPE`) inside the window, in time order.
         ext_input: Trigger edges (:data:`EXT_INPUT_DTYPE`) inside the window, in time order.

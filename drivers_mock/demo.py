@@ -3,10 +3,10 @@
 It runs the whole toolkit as far as it exists and reports its figures against ground truth.
 Today: simulate a session (truth + Vicon C3D/CSV) -> record it through the real drivers talking
 to the mock devices (``session.mcap``; :func:`drivers_mock.session.record_session`) -> ``info``
-on the recording, the D415 sync check (:class:`acquire.d415_sync.SyncChecker`) over the
+on the recording, the D415 sync check (:class:`mocaprig.acquire.d415_sync.SyncChecker`) over the
 recorded frame timing, the DAVIS decode statistics and the pairing of the DAVIS trigger pulses
 with the D415 master's frames -> read the Vicon exports back through the product reader
-(:mod:`calib.vicon`) -> compare with the truth -> calibrate the D415s and the DAVIS clock
+(:mod:`mocaprig.calib.vicon`) -> compare with the truth -> calibrate the D415s and the DAVIS clock
 against the Vicon trial (:mod:`calib.vicon_calibration`) and score the calibration against the
 truth -> DeMoCap figures of the committed ``lite`` checkpoint on held-out simulated takes
 (:func:`process.democap.demo_figures`) -> DeMoCap replay of the recording with that calibration
@@ -29,12 +29,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire import __version__
-from acquire.cli import to_jsonable
-from acquire.errors import MocaprigError, RecordingError
-from calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
-from drivers_mock.session import SimulationResult, simulate_session
-from drivers_mock.truth import Truth, read_truth
+from mocaprig import __version__
+from mocaprig.calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
+from mocaprig.drivers_mock.session import SimulationResult, simulate_session
+from mocaprig.drivers_mock.truth import Truth, read_truth
+from mocaprig.errors import MocaprigError, RecordingError
+from mocaprig.json_values import to_jsonable
 
 __all__ = ["REPLAY_EVERY", "DemoReport", "run_demo"]
 
@@ -56,8 +56,8 @@ def _replay_figures(
     sim: SimulationResult, out: Path, calib_path: Path, truth: Truth
 ) -> dict[str, Any]:
     """DeMoCap replay of the demo's recording with its calibration, scored against the truth."""
-    from drivers_mock.truth import democap_truth_at
-    from process.democap import run_replay, score_replay
+    from mocaprig.drivers_mock.truth import democap_truth_at
+    from mocaprig.process.democap import run_replay, score_replay
 
     result = run_replay(
         sim.out_dir / "session.mcap",
@@ -91,8 +91,8 @@ def _replay_figures(
 
 def _calibration_figures(sim: SimulationResult, out: Path) -> dict[str, Any]:
     """Calibrate the recorded D415s (and the DAVIS clock) against the Vicon trial; score it."""
-    from calib.calibration import write_calibration
-    from calib.vicon_calibration import calibrate_vicon, evaluate_calibration
+    from mocaprig.calib.calibration import write_calibration
+    from mocaprig.calib.vicon_calibration import calibrate_vicon, evaluate_calibration
 
     session = sim.out_dir / "session.mcap"
     result = calibrate_vicon(session, sim.c3d_path)
@@ -184,10 +184,10 @@ def _vicon_vs_truth(traj: MarkerTrajectories, truth: Truth) -> dict[str, float]:
 
 def _recording_figures(path: Path) -> dict[str, Any]:
     """``info``, the D415 sync check, DAVIS statistics and trigger pairing of a recording."""
-    from acquire.d415_sync import SyncCheckConfig, SyncChecker
-    from acquire.davis240c_decode import SpecialType
-    from acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain
-    from acquire.recording import Recording, info
+    from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker
+    from mocaprig.acquire.davis240c_decode import SpecialType
+    from mocaprig.acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain
+    from mocaprig.acquire.recording import Recording, info
 
     inf = info(path)
     out: dict[str, Any] = {
@@ -468,7 +468,7 @@ def run_demo(
 
     t0 = time.monotonic()
     try:
-        from process.democap import demo_figures
+        from mocaprig.process.democap import demo_figures
 
         figures["democap"] = demo_figures(seed=seed)
         stages["democap"] = "done (held-out simulated takes)"

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = ["NoiseSettings"]
 

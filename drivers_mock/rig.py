@@ -4,7 +4,7 @@ Frames and conventions
 ======================
 
 World: right-handed, Z up, metres; the actor stands near the origin and faces +Y at zero root
-rotation (as :mod:`process.body.skeleton`).
+rotation (as :mod:`mocaprig.process.body.skeleton`).
 
 Camera: the OpenCV convention, +Z forward (optical axis), +X right, +Y down in the image.
 ``T_world_cam`` (4×4) maps camera coordinates to world coordinates::
@@ -37,8 +37,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "D415Spec",

@@ -25,17 +25,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_positive
-from acquire.errors import ValidationError
-from drivers_mock.clapperboard import Clapperboard, make_clapperboard
-from drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import PinholeCamera, Rig, default_rig
+from mocaprig.drivers_mock.clapperboard import Clapperboard, make_clapperboard
+from mocaprig.drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import PinholeCamera, Rig, default_rig
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_positive
 
 if TYPE_CHECKING:
-    from process.body.markers import MarkerSet
-    from process.body.motion import Motion
-    from process.body.shape import BodyShape
+    from mocaprig.process.body.markers import MarkerSet
+    from mocaprig.process.body.motion import Motion
+    from mocaprig.process.body.shape import BodyShape
 
 __all__ = [
     "DEFAULT_ACTIONS",
@@ -69,7 +69,7 @@ class WorldSample:
 
     Attributes:
         t_ns: Session times (int64 ns), shape ``(T,)``.
-        pose: Pose vectors ``(T, 33)`` (:mod:`process.body.skeleton` layout).
+        pose: Pose vectors ``(T, 33)`` (:mod:`mocaprig.process.body.skeleton` layout).
         joints_m: Joint positions ``(T, 26, 3)`` (m, world).
         markers_m: Body marker centres ``(T, M, 3)`` (m, world), the marker set's order.
         marker_normals: Unit outward skin normal under each body marker ``(T, M, 3)`` (world).
@@ -119,7 +119,7 @@ def _actions(names: tuple[str, ...], seconds: float, static_start_s: float) -> t
 def _default_motion(
     shape: BodyShape, rng: np.random.Generator, seconds: float, static_start_s: float
 ) -> Motion:
-    from process.body.procedural import session_motion
+    from mocaprig.process.body.procedural import session_motion
 
     names = _actions(DEFAULT_ACTIONS, seconds, static_start_s)
     return session_motion(
@@ -130,7 +130,7 @@ def _default_motion(
 def _karate_motion(
     shape: BodyShape, rng: np.random.Generator, seconds: float, static_start_s: float
 ) -> Motion:
-    from process.body.procedural import session_motion
+    from mocaprig.process.body.procedural import session_motion
 
     return session_motion(
         ("karate",), seconds=seconds, rng=rng, static_start_s=static_start_s, shape=shape
@@ -140,7 +140,7 @@ def _karate_motion(
 def _tpose_motion(
     shape: BodyShape, rng: np.random.Generator, seconds: float, static_start_s: float
 ) -> Motion:
-    from process.body.procedural import make_motion
+    from mocaprig.process.body.procedural import make_motion
 
     return make_motion("t_pose", seconds=seconds, rng=rng, shape=shape)
 
@@ -232,8 +232,8 @@ class Scenario:
 
     def sample(self, t_ns: npt.ArrayLike) -> WorldSample:
         """Everything at once for 1-D session times (int ns): one forward-kinematics pass."""
-        from process.body.kinematics import forward_kinematics
-        from process.body.markers import marker_positions
+        from mocaprig.process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.markers import marker_positions
 
         t = _times(t_ns).reshape(-1)
         pose = self.motion.sample(t.astype(np.float64) * 1e-9)
@@ -247,15 +247,15 @@ class Scenario:
 
     def joints_m(self, t_ns: npt.ArrayLike) -> F64:
         """Joint positions (m) at session times, shape ``t_ns.shape + (26, 3)``."""
-        from process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.kinematics import forward_kinematics
 
         t = _times(t_ns)
         return forward_kinematics(self.pose(t), self.shape).positions_m
 
     def markers_m(self, t_ns: npt.ArrayLike) -> F64:
         """Body marker centres (m) at session times, shape ``t_ns.shape + (M, 3)``."""
-        from process.body.kinematics import forward_kinematics
-        from process.body.markers import marker_positions
+        from mocaprig.process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.markers import marker_positions
 
         t = _times(t_ns)
         kin = forward_kinematics(self.pose(t), self.shape)
@@ -285,8 +285,8 @@ def _times(t_ns: npt.ArrayLike) -> I64:
 def _bvh_motion(
     path: Path, shape: BodyShape, seconds: float, progress: Callable[[int, int], None] | None
 ) -> Motion:
-    from process.body.bvh import read_bvh, retarget_bvh
-    from process.body.motion import Motion
+    from mocaprig.process.body.bvh import read_bvh, retarget_bvh
+    from mocaprig.process.body.motion import Motion
 
     clip = read_bvh(path)
     # Only the frames the session uses are retargeted (the fit costs ~30 ms per frame).
@@ -324,8 +324,8 @@ def build_scenario(
         ValidationError: unknown scenario, bad seed or length.
         ProcessingError: the BVH file cannot be read or retargeted.
     """
-    from process.body.markers import MarkerSet
-    from process.body.shape import BodyShape
+    from mocaprig.process.body.markers import MarkerSet
+    from mocaprig.process.body.shape import BodyShape
 
     if name not in SCENARIOS:
         msg = f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}"

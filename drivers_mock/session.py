@@ -10,7 +10,7 @@
     <out>/session.mcap                                       the rig's recording (MCAP)
 
 ``session.mcap`` is recorded by :func:`record_session` through the real drivers
-(:class:`acquire.davis240c.Davis240C` over the mock USB backend,
+(:class:`mocaprig.acquire.davis240c.Davis240C` over the mock USB backend,
 ``acquire.depth_camera.open_cameras("mock")``, :class:`acquire.syncbox.SyncBox` on the mock's
 pseudo-terminal) and the recorder of ``mocaprig record``, from the mock devices of the same
 world. The mocks are paced "asap" (simulated time, deterministic): the recording takes as long as
@@ -37,17 +37,17 @@ from typing import Any, Final, Literal, get_args
 
 import numpy as np
 
-from acquire.errors import RecordingError, ValidationError
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.scenario import Scenario, build_scenario
-from drivers_mock.truth import write_truth, write_vicon_truth
-from drivers_mock.vicon import (
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.drivers_mock.truth import write_truth, write_vicon_truth
+from mocaprig.drivers_mock.vicon import (
     AnalogCapture,
     simulate_sync_channel,
     simulate_vicon,
     write_c3d,
     write_nexus_csv,
 )
+from mocaprig.errors import RecordingError, ValidationError
 
 __all__ = [
     "DEVICES",
@@ -195,7 +195,7 @@ def simulate_session(
 
     Args:
         out_dir: The session folder (created; must be empty unless ``overwrite``).
-        scenario: A key of :data:`drivers_mock.scenario.SCENARIOS`.
+        scenario: A key of :data:`mocaprig.drivers_mock.scenario.SCENARIOS`.
         seed: The seed.
         seconds: Session length (s), at least 3.
         motion_path: A BVH file to retarget onto the actor instead of the scenario's motion.
@@ -204,7 +204,7 @@ def simulate_session(
         overwrite: Write into a non-empty folder, replacing what this function writes.
         progress: Optional factory ``label -> (done, total) callback`` for each stage
             (``"retarget"`` with a BVH, ``"truth"``, ``"vicon"``, ``"record"``), e.g.
-            ``acquire.cli.ProgressBar``.
+            ``mocaprig.cli.ProgressBar``.
         devices: Devices recorded into ``session.mcap`` (:func:`record_session`); ``()``
             (the default here; ``mocaprig simulate`` records every device by default) writes
             no recording.
@@ -319,19 +319,19 @@ def record_session(
         ValidationError: an unknown device, a bad camera count, ``syncbox`` without ``d415``.
         RecordingError: ``path`` exists, a device failed or something was dropped.
     """
-    from acquire.commands_record import (
+    from mocaprig.acquire.commands_record import (
         DavisSource,
         DepthCameraSource,
         SyncBoxSource,
         record_to_file,
     )
-    from acquire.davis240c import Davis240C
-    from acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
-    from acquire.recorder import StreamSource
-    from acquire.syncbox import SyncBox
-    from drivers_mock.davis240c_sim import DavisSimulator
-    from drivers_mock.davis240c_usb import mock_backend
-    from drivers_mock.syncbox import MockSyncBox
+    from mocaprig.acquire.davis240c import Davis240C
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.recorder import StreamSource
+    from mocaprig.acquire.syncbox import SyncBox
+    from mocaprig.drivers_mock.davis240c_sim import DavisSimulator
+    from mocaprig.drivers_mock.davis240c_usb import mock_backend
+    from mocaprig.drivers_mock.syncbox import MockSyncBox
 
     chosen = tuple(dict.fromkeys(devices))
     unknown = [d for d in chosen if d not in DEVICES]
@@ -398,7 +398,7 @@ def record_session(
             backend.hold()
             cam.start()
             if not davis_dvs:
-                from acquire.davis240c_config import DvsParam, Module
+                from mocaprig.acquire.davis240c_config import DvsParam, Module
 
                 cam.config_set(Module.DVS, DvsParam.RUN, 0)
             end_t_us = math.floor(float(sim.device_us(world.duration_ns)))

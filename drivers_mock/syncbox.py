@@ -45,9 +45,9 @@ from typing import Final, Literal, Self, get_args
 
 import numpy as np
 
-from acquire.errors import DeviceError, ValidationError
-from drivers_mock.clock import DeviceClock
-from drivers_mock.scenario import stream_rng
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.scenario import stream_rng
+from mocaprig.errors import DeviceError, ValidationError
 
 __all__ = [
     "LINE_MAX",

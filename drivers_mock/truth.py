@@ -30,14 +30,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire import __version__
-from acquire.errors import RecordingError, ValidationError
-from drivers_mock.clock import DeviceClock
-from drivers_mock.rig import PinholeCamera
+from mocaprig import __version__
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.rig import PinholeCamera
+from mocaprig.errors import RecordingError, ValidationError
 
 if TYPE_CHECKING:
-    from drivers_mock.scenario import Scenario
-    from drivers_mock.vicon import ViconCapture
+    from mocaprig.drivers_mock.scenario import Scenario
+    from mocaprig.drivers_mock.vicon import ViconCapture
 
 __all__ = [
     "TRUTH_FORMAT_VERSION",
@@ -160,7 +160,7 @@ def _camera_from_dict(d: Mapping[str, Any]) -> PinholeCamera:
 
 def scenario_description(scenario: Scenario, *, rate_hz: float | None = None) -> dict[str, Any]:
     """Everything that defines the scenario, JSON-ready (the content of ``scenario.json``)."""
-    from process.body.skeleton import JOINTS
+    from mocaprig.process.body.skeleton import JOINTS
 
     markers = scenario.markers
     marker_dict: dict[str, Any] = {
@@ -250,7 +250,7 @@ def write_truth(
         RecordingError: the folder is not empty (without ``overwrite``) or cannot be written.
         ValidationError: a non-positive rate.
     """
-    from process.body.skeleton import JOINTS
+    from mocaprig.process.body.skeleton import JOINTS
 
     if not (np.isfinite(rate_hz) and rate_hz > 0):
         msg = f"rate_hz must be > 0, got {rate_hz!r}"
@@ -400,7 +400,7 @@ def democap_truth_at(
     Raises:
         ValidationError: an unknown clock, or a marker of the DeMoCap set missing in the truth.
     """
-    from process.body import DEMOCAP_JOINT_INDEX, MARKER_NAMES
+    from mocaprig.process.body import DEMOCAP_JOINT_INDEX, MARKER_NAMES
 
     t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
     if clock is not None:

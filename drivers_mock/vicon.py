@@ -56,14 +56,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from acquire import __version__
-from acquire.errors import RecordingError, ValidationError
-from drivers_mock.clock import DeviceClock
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import ViconSpec
+from mocaprig import __version__
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import ViconSpec
+from mocaprig.errors import RecordingError, ValidationError
 
 if TYPE_CHECKING:
-    from drivers_mock.scenario import Scenario
+    from mocaprig.drivers_mock.scenario import Scenario
 
 __all__ = [
     "C3D_POINT_SCALE",

@@ -1,6 +1,6 @@
 """Body model, capture methods (DeMoCap, EventCap), metrics and exporters.
 
-Imports flow one way: ``process -> calib -> acquire``. Subpackages: :mod:`process.body`.
+Imports flow one way: ``process -> calib -> acquire``. Subpackages: :mod:`mocaprig.process.body`.
 """
 
 from __future__ import annotations

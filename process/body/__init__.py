@@ -7,7 +7,7 @@ are (..., 33): root axis-angle (rad), root translation (m), 27 joint angles (rad
 
 from __future__ import annotations
 
-from process.body.bvh import (
+from mocaprig.process.body.bvh import (
     BvhClip,
     RetargetReport,
     bvh_forward_kinematics,
@@ -17,7 +17,7 @@ from process.body.bvh import (
     retarget_bvh,
     retarget_errors,
 )
-from process.body.kinematics import (
+from mocaprig.process.body.kinematics import (
     EVENTCAP_KEYPOINT_JOINTS,
     EVENTCAP_KEYPOINTS,
     Kinematics,
@@ -35,7 +35,7 @@ from process.body.kinematics import (
     t_pose,
     within_limits,
 )
-from process.body.markers import (
+from mocaprig.process.body.markers import (
     COMMON_MARKERS,
     MARKER_NAMES,
     NUM_MARKERS,
@@ -45,14 +45,14 @@ from process.body.markers import (
     marker_positions,
     marker_positions_torch,
 )
-from process.body.motion import Motion, blend_poses, concatenate
-from process.body.procedural import (
+from mocaprig.process.body.motion import Motion, blend_poses, concatenate
+from mocaprig.process.body.procedural import (
     PROCEDURAL_MOTIONS,
     floor_clearance_m,
     make_motion,
     session_motion,
 )
-from process.body.shape import (
+from mocaprig.process.body.shape import (
     DRILLIS_CONTINI_FRACTIONS,
     LENGTH_FIELDS,
     RADIUS_FIELDS,
@@ -61,7 +61,7 @@ from process.body.shape import (
     rest_joint_positions,
     rest_offsets,
 )
-from process.body.skeleton import (
+from mocaprig.process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
     DEMOCAP_JOINTS,
     DEMOCAP_PARENTS,
@@ -76,7 +76,7 @@ from process.body.skeleton import (
     POSE_DIM,
     ROOT_DIM,
 )
-from process.body.surface import (
+from mocaprig.process.body.surface import (
     CAPSULE_INDEX,
     CAPSULE_NAMES,
     Capsules,

@@ -36,12 +36,12 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_positive
-from acquire.errors import ProcessingError, ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.validation import check_positive
 
 if TYPE_CHECKING:
-    from process.body.motion import Motion
-    from process.body.shape import BodyShape
+    from mocaprig.process.body.motion import Motion
+    from mocaprig.process.body.shape import BodyShape
 
 __all__ = [
     "DEFAULT_JOINT_CANDIDATES",
@@ -677,7 +677,7 @@ def resolve_joint_map(clip: BvhClip, joint_map: Mapping[str, str] | None = None)
         ValidationError: ``joint_map`` names an unknown joint of ours or of the BVH.
         ProcessingError: the hips, both hips joints or the spine cannot be mapped.
     """
-    from process.body.skeleton import JOINT_INDEX
+    from mocaprig.process.body.skeleton import JOINT_INDEX
 
     lower = {n.lower(): i for i, n in enumerate(clip.joint_names)}
     out: dict[str, int] = {}
@@ -752,7 +752,7 @@ def _unit(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 
 
 def _usable_cues(clip: BvhClip, jmap: Mapping[str, int]) -> list[tuple[int, int, int, int, float]]:
-    from process.body.skeleton import JOINT_INDEX
+    from mocaprig.process.body.skeleton import JOINT_INDEX
 
     rest = bvh_rest_positions(clip)
     cues = []
@@ -814,10 +814,10 @@ def retarget_bvh(
     import torch
     from scipy.spatial.transform import Rotation
 
-    from process.body.kinematics import clamp_to_limits, forward_kinematics_torch
-    from process.body.motion import Motion
-    from process.body.shape import rest_offsets
-    from process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
+    from mocaprig.process.body.kinematics import clamp_to_limits, forward_kinematics_torch
+    from mocaprig.process.body.motion import Motion
+    from mocaprig.process.body.shape import rest_offsets
+    from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
 
     started = time.perf_counter()
     jmap = resolve_joint_map(clip, joint_map)
@@ -890,8 +890,8 @@ def retarget_bvh(
     poses[:, 6:] = fitted[:, 3:]
     poses = clamp_to_limits(poses)
     if ground:
-        from process.body.kinematics import forward_kinematics
-        from process.body.procedural import floor_clearance_m
+        from mocaprig.process.body.kinematics import forward_kinematics
+        from mocaprig.process.body.procedural import floor_clearance_m
 
         clearance = floor_clearance_m(forward_kinematics(poses, shape), shape)
         poses[:, 5] -= float(np.median(clearance))
@@ -926,8 +926,8 @@ def retarget_errors(
     Raises:
         ValidationError: the motion and the clip have different frame counts.
     """
-    from process.body.kinematics import forward_kinematics
-    from process.body.skeleton import JOINT_INDEX, JOINTS, PARENTS
+    from mocaprig.process.body.kinematics import forward_kinematics
+    from mocaprig.process.body.skeleton import JOINT_INDEX, JOINTS, PARENTS
 
     if motion.num_frames != clip.num_frames:
         msg = f"motion has {motion.num_frames} frames, the BVH clip {clip.num_frames}"

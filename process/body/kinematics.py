@@ -47,10 +47,9 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
-from process.body.shape import BodyShape, rest_offsets
-from process.body.skeleton import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.shape import BodyShape, rest_offsets
+from mocaprig.process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
     DOF_JOINT,
     DOF_LIMITS_RAD,
@@ -62,6 +61,7 @@ from process.body.skeleton import (
     POSE_DIM,
     ROOT_DIM,
 )
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "EVENTCAP_KEYPOINTS",

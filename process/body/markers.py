@@ -22,13 +22,13 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from acquire.check import check_positive, check_shape
-from acquire.errors import ProcessingError, ValidationError
-from process.body._capsule_math import closest_on_segment, ray_capsule
-from process.body.kinematics import Kinematics, forward_kinematics
-from process.body.shape import BodyShape, rest_joint_positions
-from process.body.skeleton import JOINT_INDEX
-from process.body.surface import CAPSULE_INDEX, capsule_template
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body._capsule_math import closest_on_segment, ray_capsule
+from mocaprig.process.body.kinematics import Kinematics, forward_kinematics
+from mocaprig.process.body.shape import BodyShape, rest_joint_positions
+from mocaprig.process.body.skeleton import JOINT_INDEX
+from mocaprig.process.body.surface import CAPSULE_INDEX, capsule_template
+from mocaprig.validation import check_positive, check_shape
 
 __all__ = [
     "COMMON_MARKERS",

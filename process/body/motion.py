@@ -1,6 +1,6 @@
 """A motion clip: a sequence of pose vectors at a fixed frame rate, and its operations.
 
-A :class:`Motion` holds ``F`` pose vectors of the layout in :mod:`process.body.skeleton`
+A :class:`Motion` holds ``F`` pose vectors of the layout in :mod:`mocaprig.process.body.skeleton`
 (``[root axis-angle (3), root translation m (3), 27 angles rad]``) sampled at ``rate_hz``; frame
 ``i`` is at ``t = i / rate_hz`` seconds from the start of the clip.
 
@@ -28,9 +28,9 @@ import numpy.typing as npt
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from acquire.check import check_finite, check_positive, check_shape
-from acquire.errors import ValidationError
-from process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
+from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = ["Interpolation", "Motion", "OutOfRange", "blend_poses", "concatenate"]
 

@@ -54,12 +54,12 @@ import numpy.typing as npt
 from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import least_squares
 
-from acquire.check import check_positive
-from acquire.errors import ValidationError
-from process.body.kinematics import Kinematics, forward_kinematics
-from process.body.motion import Motion, concatenate
-from process.body.shape import HEEL_FRACTION, BodyShape
-from process.body.skeleton import DOF_LIMITS_RAD, DOF_NAMES, JOINT_INDEX, NUM_DOF, POSE_DIM
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import Kinematics, forward_kinematics
+from mocaprig.process.body.motion import Motion, concatenate
+from mocaprig.process.body.shape import HEEL_FRACTION, BodyShape
+from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, DOF_NAMES, JOINT_INDEX, NUM_DOF, POSE_DIM
+from mocaprig.validation import check_positive
 
 __all__ = [
     "PROCEDURAL_MOTIONS",
@@ -600,7 +600,7 @@ def session_motion(
     The first ``static_start_s`` seconds hold the calibration T-pose (``t_pose``); the rest of
     the ``seconds`` is split evenly between ``names`` (each action's take is lengthened by the
     ``blend_s`` overlap it shares with its predecessor). Clips are joined with
-    :func:`process.body.motion.concatenate` (root continuity, smooth cross-fades), then any
+    :func:`mocaprig.process.body.motion.concatenate` (root continuity, smooth cross-fades), then any
     frame whose blended pose would push a foot through the floor has its root raised.
 
     Args:

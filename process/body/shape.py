@@ -32,9 +32,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_positive
-from acquire.errors import ValidationError
-from process.body.skeleton import JOINT_INDEX, JOINTS, PARENTS
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.skeleton import JOINT_INDEX, JOINTS, PARENTS
+from mocaprig.validation import check_positive
 
 __all__ = [
     "DRILLIS_CONTINI_FRACTIONS",

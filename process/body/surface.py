@@ -19,18 +19,18 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
-from process.body._capsule_math import closest_on_segment, ray_capsule, surface_normals
-from process.body.kinematics import Kinematics, forward_kinematics
-from process.body.shape import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body._capsule_math import closest_on_segment, ray_capsule, surface_normals
+from mocaprig.process.body.kinematics import Kinematics, forward_kinematics
+from mocaprig.process.body.shape import (
     BALL_FRACTION,
     HEEL_FRACTION,
     TOE_FRACTION,
     BodyShape,
     rest_offsets,
 )
-from process.body.skeleton import JOINT_INDEX
+from mocaprig.process.body.skeleton import JOINT_INDEX
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "CAPSULE_INDEX",

@@ -14,16 +14,16 @@ from __future__ import annotations
 
 from typing import Any
 
-from process.democap.checkpoint import (
+from mocaprig.process.democap.checkpoint import (
     DEFAULT_CHECKPOINT,
     Checkpoint,
     load_checkpoint,
     save_checkpoint,
 )
-from process.democap.config import CONFIGS, VARIANTS, DemocapConfig, config_by_name
-from process.democap.evaluate import EvalReport, evaluate, held_out_pool
-from process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
-from process.democap.live import (
+from mocaprig.process.democap.config import CONFIGS, VARIANTS, DemocapConfig, config_by_name
+from mocaprig.process.democap.evaluate import EvalReport, evaluate, held_out_pool
+from mocaprig.process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
+from mocaprig.process.democap.live import (
     LIVE_ROTATIONS,
     LiveCamera,
     LivePipeline,
@@ -31,9 +31,9 @@ from process.democap.live import (
     cameras_from_calibration,
     live_predictor,
 )
-from process.democap.model import DemocapNet, build_network
-from process.democap.replay import ReplayResult, run_replay, score_replay
-from process.democap.train import TrainOptions, train
+from mocaprig.process.democap.model import DemocapNet, build_network
+from mocaprig.process.democap.replay import ReplayResult, run_replay, score_replay
+from mocaprig.process.democap.train import TrainOptions, train
 
 __all__ = [
     "CONFIGS",

@@ -6,7 +6,7 @@ output order, the model state (of the config's ``variant``; a config without the
 markers-to-pose) and, for resuming, the optimiser and scheduler state, the
 number of finished epochs, the seed and the loss history, and ``train_motions``, the names of
 the BVH clips in the training pool (absent in older files: none). Loading checks all of them against
-this code and raises :class:`acquire.errors.ProcessingError` naming what differs.
+this code and raises :class:`mocaprig.errors.ProcessingError` naming what differs.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ from typing import Any
 
 import torch
 
-from acquire.errors import ProcessingError
-from process.body import DEMOCAP_JOINTS, MARKER_NAMES
-from process.democap.config import DemocapConfig
-from process.democap.model import DemocapModel, build_network
+from mocaprig.errors import ProcessingError
+from mocaprig.process.body import DEMOCAP_JOINTS, MARKER_NAMES
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.model import DemocapModel, build_network
 
 __all__ = [
     "DEFAULT_CHECKPOINT",

@@ -12,7 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from acquire.cli import ProgressBar, add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.progress import ProgressBar
 
 __all__ = [
     "VARIANT_CHOICES",
@@ -217,11 +218,11 @@ def democap_train(args: argparse.Namespace) -> int:
     """
     import dataclasses
 
-    from acquire.errors import ValidationError
-    from process.body import read_bvh
-    from process.democap.checkpoint import load_checkpoint
-    from process.democap.config import config_by_name
-    from process.democap.train import TrainOptions, train
+    from mocaprig.errors import ValidationError
+    from mocaprig.process.body import read_bvh
+    from mocaprig.process.democap.checkpoint import load_checkpoint
+    from mocaprig.process.democap.config import config_by_name
+    from mocaprig.process.democap.train import TrainOptions, train
 
     if args.resume and args.variant is not None:
         stored = load_checkpoint(Path(args.out)).config.variant
@@ -278,9 +279,9 @@ def democap_train(args: argparse.Namespace) -> int:
 
 def democap_eval(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig democap eval``; returns 0."""
-    from process.body import read_bvh
-    from process.democap.evaluate import evaluate, held_out_pool
-    from process.democap.infer import DemocapPredictor
+    from mocaprig.process.body import read_bvh
+    from mocaprig.process.democap.evaluate import evaluate, held_out_pool
+    from mocaprig.process.democap.infer import DemocapPredictor
 
     predictor = DemocapPredictor(
         None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
@@ -340,11 +341,11 @@ def democap_run(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig democap run``; returns 0."""
     import torch
 
-    from process.democap.infer import DemocapPredictor
-    from process.democap.replay import DEFAULT_CROP_BOX_M, run_replay
+    from mocaprig.process.democap.infer import DemocapPredictor
+    from mocaprig.process.democap.replay import DEFAULT_CROP_BOX_M, run_replay
 
     if args.threads < 1:
-        from acquire.errors import ValidationError
+        from mocaprig.errors import ValidationError
 
         msg = f"--threads must be >= 1, got {args.threads}"
         raise ValidationError(msg)

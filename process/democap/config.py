@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = [
     "CONFIGS",

@@ -5,7 +5,7 @@ subject (:meth:`BodyShape.sample`, marker placement jitter σ = 1 cm), a procedu
 new take variation and, for training, a constant random offset on every joint angle (up to
 ±12°, clipped to the limits) so the poses are not limited to the six scores; a third of the
 training takes are ``freestyle`` (random key poses within the joint limits,
-:mod:`process.body.procedural`). The training
+:mod:`mocaprig.process.body.procedural`). The training
 and held-out pools come from different seed streams, so held-out bodies, placements and takes
 are never seen in training; a BVH clip (``--motion``) gives an action never trained on. BVH
 clips can join the training pool too (``democap train --bvh``), on bodies of their own seed
@@ -28,8 +28,8 @@ import numpy.typing as npt
 import torch
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from process.body import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import (
     DOF_LIMITS_RAD,
     PROCEDURAL_MOTIONS,
     BodyShape,
@@ -39,7 +39,7 @@ from process.body import (
     make_motion,
     retarget_bvh,
 )
-from process.democap.geometry import (
+from mocaprig.process.democap.geometry import (
     Normalisation,
     back_view,
     normalise,
@@ -47,7 +47,13 @@ from process.democap.geometry import (
     render_view,
     to_image_frame,
 )
-from process.democap.simdata import PoseFrames, merge_views, observe, pose_frames, sample_rig
+from mocaprig.process.democap.simdata import (
+    PoseFrames,
+    merge_views,
+    observe,
+    pose_frames,
+    sample_rig,
+)
 
 __all__ = [
     "TRAIN_ACTIONS",
@@ -131,7 +137,7 @@ def pool_from_bvh(
     clip: BvhClip, seed: int, *, subjects: int = 1, split: Split = "test"
 ) -> list[PoseFrames]:
     """Takes of a BVH clip on ``subjects`` new bodies: the clip is thinned to about 30 Hz and
-    retargeted onto each body (:func:`process.body.retarget_bvh`). ``"test"``: held-out
+    retargeted onto each body (:func:`mocaprig.process.body.retarget_bvh`). ``"test"``: held-out
     bodies (e.g. for a clip never trained on); ``"train"``: bodies of another seed stream, for
     clips added to the training pool.
 

@@ -5,7 +5,7 @@ marker placements and takes never used in training, one take per procedural acti
 given motion (e.g. a retargeted BVH clip never trained on) on new subjects. Each frame is
 seen by a freshly sampled rig of ``num_cameras`` D415s, without rotation augmentation.
 
-Metrics (:mod:`process.metrics`): joints over the paper's 17 evaluation joints (the two toe
+Metrics (:mod:`mocaprig.process.metrics`): joints over the paper's 17 evaluation joints (the two toe
 joints left out, democap-method.md §5), markers over all 53. MPJAE uses segment orientations
 built the same way for truth and estimate: the bone direction (joint to child joint) and a
 marker pair across the segment, orthogonalised (the paper combines bone directions with
@@ -23,13 +23,13 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from process.body import DEMOCAP_JOINTS, MARKER_NAMES, BvhClip
-from process.democap.config import Variant
-from process.democap.dataset import make_pool, make_sample, pool_from_bvh
-from process.democap.infer import DemocapPredictor
-from process.democap.simdata import PoseFrames
-from process.metrics import PoseMetrics, pose_metrics
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import DEMOCAP_JOINTS, MARKER_NAMES, BvhClip
+from mocaprig.process.democap.config import Variant
+from mocaprig.process.democap.dataset import make_pool, make_sample, pool_from_bvh
+from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.simdata import PoseFrames
+from mocaprig.process.metrics import PoseMetrics, pose_metrics
 
 __all__ = [
     "EVAL_JOINTS",

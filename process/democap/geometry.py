@@ -1,6 +1,6 @@
 """Normalisation into the [0.1, 0.9] cuboid, rotation augmentation, dual-view rendering, fusion.
 
-Frames. World points are metres, Z up (:mod:`process.body`). The method works in an "image"
+Frames. World points are metres, Z up (:mod:`mocaprig.process.body`). The method works in an "image"
 frame (democap-method.md §1.2): ``u = x`` (image column, right), ``v = -z`` (image row, down),
 ``w = y`` (depth, away from a camera looking along +w). Normalisation (§1.2 step 5) is per
 axis: ``n = (p - lo) / (1.25 (hi - lo)) + 0.1`` so the box spans [0.1, 0.9]. Unlike the
@@ -25,8 +25,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "Normalisation",

@@ -37,12 +37,17 @@ from scipy.spatial.transform import Rotation
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import ValidationError
-from process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
-from process.democap.dataset import prepare_cloud
-from process.democap.geometry import Normalisation, to_world_frame
-from process.democap.model import DemocapModel, DemocapOutput, fuse_views_torch, view_keypoints
+from mocaprig.errors import ValidationError
+from mocaprig.process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
+from mocaprig.process.democap.dataset import prepare_cloud
+from mocaprig.process.democap.geometry import Normalisation, to_world_frame
+from mocaprig.process.democap.model import (
+    DemocapModel,
+    DemocapOutput,
+    fuse_views_torch,
+    view_keypoints,
+)
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "DEFAULT_ROTATIONS",

@@ -2,15 +2,15 @@
 
 :class:`LivePipeline` takes, per rig instant, one ``(IR, depth)`` pair per camera (the frames
 of the hardware-synchronised D415s that exposed together) and runs the replay's stages
-(:mod:`process.democap.replay`) on them, with the same functions and parameters so live and
+(:mod:`mocaprig.process.democap.replay`) on them, with the same functions and parameters so live and
 replay give the same clouds:
 
-1. **measure**, per camera (:func:`calib.markers.measure_frame`): IR blobs, robust depth,
+1. **measure**, per camera (:func:`mocaprig.calib.markers.measure_frame`): IR blobs, robust depth,
    deprojection into the camera frame;
-2. **merge**: camera -> world (:func:`calib.markers.to_world`), the capture-box crop of the
-   training data (:func:`calib.markers.crop_volume` with
-   :data:`~process.democap.replay.DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
-   (:func:`calib.markers.merge_views`, views in the pipeline's camera order;
+2. **merge**: camera -> world (:func:`mocaprig.calib.markers.to_world`), the capture-box crop of the
+   training data (:func:`mocaprig.calib.markers.crop_volume` with
+   :data:`~mocaprig.process.democap.replay.DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
+   (:func:`mocaprig.calib.markers.merge_views`, views in the pipeline's camera order;
    :func:`cameras_from_calibration` sorts them by name, as the replay does);
 3. **predict**: :meth:`DemocapPredictor.predict_many` on the one cloud (whatever stages the
    predictor has: render, network, decode...; its ``last_timings_s`` are copied into the
@@ -49,10 +49,8 @@ from typing import Final, Protocol, TypeAlias, cast
 import numpy as np
 import numpy.typing as npt
 
-from acquire.check import check_finite, check_shape
-from acquire.errors import CalibrationError, ProcessingError, ValidationError
-from calib.calibration import Calibration, cameras_of_kind
-from calib.markers import (
+from mocaprig.calib.calibration import Calibration, cameras_of_kind
+from mocaprig.calib.markers import (
     DEFAULT_MAX_AREA_PX,
     DEFAULT_MIN_AREA_PX,
     DEFAULT_THRESHOLD,
@@ -63,9 +61,11 @@ from calib.markers import (
     merge_views,
     to_world,
 )
-from process.democap.checkpoint import Checkpoint
-from process.democap.infer import DemocapPredictor, Prediction
-from process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
+from mocaprig.process.democap.checkpoint import Checkpoint
+from mocaprig.process.democap.infer import DemocapPredictor, Prediction
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "DEFAULT_MERGE_RADIUS_M",
@@ -96,7 +96,7 @@ DEFAULT_MERGE_RADIUS_M: Final = 0.010
 DEFAULT_WORKERS: Final = 1
 #: Rotation-ensemble size for live use (:func:`live_predictor`): two turns, their network
 #: passes on two threads, keep a 2-core machine above 30 fps (the offline default,
-#: :data:`~process.democap.infer.DEFAULT_ROTATIONS`, does not: docs/democap.md, "Speed").
+#: :data:`~mocaprig.process.democap.infer.DEFAULT_ROTATIONS`, does not: docs/democap.md, "Speed").
 LIVE_ROTATIONS: Final = 2
 #: How long closing a stream waits for its producer thread (s) before leaving it behind.
 _JOIN_TIMEOUT_S: Final = 10.0
@@ -308,7 +308,7 @@ class LivePipeline:
     """Synchronised D415 IR + depth frames -> :class:`LiveResult` (module doc).
 
     Args:
-        predictor: The network (:class:`~process.democap.infer.DemocapPredictor`).
+        predictor: The network (:class:`~mocaprig.process.democap.infer.DemocapPredictor`).
         cameras: The rig's D415s, in the order of the frame sets' pairs (names unique). The
             order is also the merge order; pass frame sets by camera name (a mapping) when
             the source's order may differ (:func:`cameras_from_calibration` sorts by name).

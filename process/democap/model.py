@@ -52,8 +52,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from acquire.errors import ValidationError
-from process.democap.config import DemocapConfig
+from mocaprig.errors import ValidationError
+from mocaprig.process.democap.config import DemocapConfig
 
 __all__ = [
     "CoordsOutput",

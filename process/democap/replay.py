@@ -5,18 +5,18 @@
 
 1. lists every D415 frame's device time (:func:`calib.markers.frame_times`, no image decoded)
    and maps it onto the calibration's reference clock with that camera's
-   :class:`~calib.calibration.ClockMapping`;
+   :class:`~mocaprig.calib.calibration.ClockMapping`;
 2. groups the frames into **rig instants** (:func:`group_instants`): the D415s are hardware
    synchronised (the slaves expose on the master's pulses), so the frames of one instant agree
    on the reference clock to the calibration's accuracy (≈ 1 ms); frames closer than
    ``tolerance`` × the median frame period (¼ by default) to the instant's first frame join it,
    one per camera. An instant seen by fewer cameras (a dropped frame) is still processed;
 3. keeps every ``every``-th instant and measures only its frames
-   (:func:`calib.markers.measure_recording`: IR blobs, depth, deprojection);
+   (:func:`mocaprig.calib.markers.measure_recording`: IR blobs, depth, deprojection);
 4. per instant: camera -> world (:func:`calib.markers.to_world`), the capture-box crop of the
    training data (:data:`DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
-   (:func:`calib.markers.merge_views`);
-5. runs the clouds through :class:`~process.democap.infer.DemocapPredictor` in batches
+   (:func:`mocaprig.calib.markers.merge_views`);
+5. runs the clouds through :class:`~mocaprig.process.democap.infer.DemocapPredictor` in batches
    (instants whose cloud has fewer than 2 points are skipped and counted);
 6. writes the results (:func:`write_scene_mcap`, :func:`write_replay_c3d`,
    :func:`write_replay_csv`).
@@ -55,13 +55,13 @@ from typing import Any, Final, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import CalibrationError, ProcessingError, ValidationError
-from calib.calibration import Calibration, read_calibration
-from process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
-from process.democap.evaluate import EVAL_JOINTS
-from process.democap.infer import DemocapPredictor, Prediction
-from process.democap.simdata import CAPTURE_BOX_M
-from process.metrics import PoseMetrics, pose_metrics
+from mocaprig.calib.calibration import Calibration, read_calibration
+from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
+from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
+from mocaprig.process.democap.evaluate import EVAL_JOINTS
+from mocaprig.process.democap.infer import DemocapPredictor, Prediction
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.process.metrics import PoseMetrics, pose_metrics
 
 __all__ = [
     "CLOUD_TOPIC",
@@ -296,7 +296,7 @@ def score_replay(
     """Figures of a replay against true joints (and markers) at its instants.
 
     MPJPE is over the paper's 17 joints (no toes, :data:`~process.democap.evaluate.EVAL_JOINTS`)
-    as in :func:`~process.democap.evaluate.evaluate`, MPMPE over the 53 markers.
+    as in :func:`~mocaprig.process.democap.evaluate.evaluate`, MPMPE over the 53 markers.
 
     Args:
         result: The replay.
@@ -424,8 +424,14 @@ def run_replay(
             recording has no ``camera_info`` (intrinsics).
         RecordingError: the recording is unreadable.
     """
-    from acquire.recording import Recording
-    from calib.markers import crop_volume, frame_times, measure_recording, merge_views, to_world
+    from mocaprig.acquire.recording import Recording
+    from mocaprig.calib.markers import (
+        crop_volume,
+        frame_times,
+        measure_recording,
+        merge_views,
+        to_world,
+    )
 
     t_start = time.monotonic()
     if isinstance(every, bool) or int(every) != every or every < 1:
@@ -615,7 +621,7 @@ def write_replay_c3d(result: ReplayResult, path: str | Path, *, overwrite: bool 
         ProcessingError: no instants.
         ViconFileError: ``path`` exists and ``overwrite`` is False, or the write failed.
     """
-    from calib.vicon import MarkerTrajectories, write_c3d
+    from mocaprig.calib.vicon import MarkerTrajectories, write_c3d
 
     if not result.instants:
         msg = "the replay has no instants; nothing to write to a C3D file"
@@ -735,9 +741,9 @@ def write_scene_mcap(
     """
     from mcap.writer import CompressionType, Writer
 
-    from acquire import __version__
-    from acquire.recording_format import PROFILE
-    from calib.calibration import calibration_bytes
+    from mocaprig import __version__
+    from mocaprig.acquire.recording_format import PROFILE
+    from mocaprig.calib.calibration import calibration_bytes
 
     dst = Path(path)
     if dst.exists() and not overwrite:
@@ -829,7 +835,7 @@ def write_scene_mcap(
 
 
 def _metadata(result: ReplayResult) -> dict[str, str]:
-    from acquire import __version__
+    from mocaprig import __version__
 
     return {
         "software_version": __version__,

@@ -14,7 +14,7 @@ instants of two 30 s sessions, 4 D415s, true camera poses, checked on 599; docs/
   random; two keep an opposing pair.
 * **line of sight** (:func:`visibility`): markers are retro-reflective spheres standing
   :data:`MARKER_RADIUS_M` off the skin, so there is no facing cut: a camera sees a marker until
-  a body capsule (:mod:`process.body.surface`, its own limb included) covers it. The
+  a body capsule (:mod:`mocaprig.process.body.surface`, its own limb included) covers it. The
   *normalised gap* ``g`` is the clearance of the segment camera → marker centre from the
   nearest capsule surface, as an angle, in units of the marker's angular radius: ``g ≥ 1`` the
   whole sphere is in view, ``g = 0`` half of it, ``g ≤ -1`` none (a straight occluding edge).
@@ -64,9 +64,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from acquire.check import check_shape
-from acquire.errors import ValidationError
-from process.body import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import (
     BodyShape,
     MarkerSet,
     Motion,
@@ -74,6 +73,7 @@ from process.body import (
     democap_joints,
     forward_kinematics,
 )
+from mocaprig.validation import check_shape
 
 __all__ = [
     "Camera",

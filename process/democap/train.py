@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from acquire.errors import ValidationError
-from process.body import BvhClip
-from process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from process.democap.config import DemocapConfig
-from process.democap.dataset import make_batch, make_pool, make_sample, pool_from_bvh
-from process.democap.model import DemocapModel, build_network, democap_loss
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import BvhClip
+from mocaprig.process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.dataset import make_batch, make_pool, make_sample, pool_from_bvh
+from mocaprig.process.democap.model import DemocapModel, build_network, democap_loss
 
 __all__ = ["TrainOptions", "train"]
 
@@ -204,7 +204,7 @@ def _validation_set(seed: int, size_px: int, n: int = 48) -> _Val:
 
 def _validate(model: DemocapModel, val: _Val) -> float:
     """Mean joint error (mm, 17 joints without the toes) on the fixed held-out samples."""
-    from process.democap.infer import decode  # local: infer imports this module's siblings
+    from mocaprig.process.democap.infer import decode  # local: infer imports this module's siblings
 
     model.eval()
     keep = [k for k in range(19) if k not in (14, 18)]

@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acquire.cli import main
-from acquire.d415_sync import SyncCheckConfig, SyncChecker, SyncFlag, run_sync_check
-from acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain, open_cameras
-from acquire.errors import ValidationError
+from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker, SyncFlag, run_sync_check
+from mocaprig.acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain, open_cameras
+from mocaprig.cli import main
+from mocaprig.errors import ValidationError
 
 WRAP = 1 << 32
 

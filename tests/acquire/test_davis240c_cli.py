@@ -8,10 +8,10 @@ from typing import Any
 
 import pytest
 
-import acquire.davis240c
-from acquire.cli import main
-from acquire.commands import DEVICE_PROBERS, DeviceListing
-from drivers_mock.davis240c_usb import DavisFaults, SyntheticDavisSource, mock_backend
+import mocaprig.acquire.davis240c
+from mocaprig.acquire.commands import DEVICE_PROBERS, DeviceListing
+from mocaprig.cli import main
+from mocaprig.drivers_mock.davis240c_usb import DavisFaults, SyntheticDavisSource, mock_backend
 
 
 @pytest.fixture(autouse=True)
@@ -22,7 +22,7 @@ def fast_mock(monkeypatch: pytest.MonkeyPatch) -> None:
     def factory(**kwargs: Any) -> Any:
         return mock_backend(source=SyntheticDavisSource(seed=5, event_rate_hz=100_000.0))
 
-    monkeypatch.setattr(acquire.davis240c, "load_mock_backend", factory)
+    monkeypatch.setattr(mocaprig.acquire.davis240c, "load_mock_backend", factory)
 
 
 def run_json(capsys: pytest.CaptureFixture[str], argv: list[str]) -> dict[str, Any]:
@@ -167,7 +167,7 @@ def test_stream_reports_a_disconnect_and_fails(
         source = SyntheticDavisSource(seed=5, event_rate_hz=50_000.0)
         return mock_backend(source=source, faults=faults, pacing="realtime")
 
-    monkeypatch.setattr(acquire.davis240c, "load_mock_backend", unplugging)
+    monkeypatch.setattr(mocaprig.acquire.davis240c, "load_mock_backend", unplugging)
     raw = tmp_path / "cap.bin"
     argv = ["davis", "stream", "--mock", "--seconds", "60", "--raw-out", str(raw), "--json"]
     assert main(argv) == 1

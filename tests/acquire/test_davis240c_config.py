@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from acquire.davis240c_config import (
+from mocaprig.acquire.davis240c_config import (
     BIAS_PRESETS,
     ApsParam,
     BiasCurrentLevel,
@@ -29,7 +29,7 @@ from acquire.davis240c_config import (
     parse_setting,
     to_device_units,
 )
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 #: The note's table of libcaer default DAVIS240 bias values (§4).
 LIBCAER_DEFAULTS = {

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire.davis240c_decode import (
+from mocaprig.acquire.davis240c_decode import (
     IMU_SAMPLE_DTYPE,
     SPECIAL_DTYPE,
     DavisDecoder,
@@ -17,7 +17,7 @@ from acquire.davis240c_decode import (
     SpecialType,
     decode_words,
 )
-from acquire.events import EVENT_DTYPE
+from mocaprig.acquire.events import EVENT_DTYPE
 
 
 def raw(*words: int) -> bytes:

@@ -15,7 +15,7 @@ import pytest
 import usb.backend
 import usb.core
 
-from acquire.davis240c import (
+from mocaprig.acquire.davis240c import (
     PRODUCT_ID_FX2,
     REQUIRED_LOGIC_VERSION,
     UDEV_RULE,
@@ -23,7 +23,7 @@ from acquire.davis240c import (
     find_davis,
     load_mock_backend,
 )
-from acquire.davis240c_config import (
+from mocaprig.acquire.davis240c_config import (
     ApsParam,
     ApsSettings,
     BiasParam,
@@ -34,9 +34,9 @@ from acquire.davis240c_config import (
     SysInfoParam,
     bias_set,
 )
-from acquire.davis240c_decode import DavisPacket, SpecialType
-from acquire.errors import DeviceError, ValidationError
-from drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, SyntheticDavisSource
+from mocaprig.acquire.davis240c_decode import DavisPacket, SpecialType
+from mocaprig.drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, SyntheticDavisSource
+from mocaprig.errors import DeviceError, ValidationError
 
 #: Start-sequence sleeps for the mock (the real camera keeps libcaer's 10/200/50 ms).
 FAST = (0.0, 0.0, 0.0)

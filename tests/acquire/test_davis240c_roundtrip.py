@@ -14,12 +14,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire.cli import main
-from acquire.commands import load_decoded
-from acquire.davis240c_decode import ApsFrame, DavisDecoder, SpecialType
-from acquire.events import make_events
-from drivers_mock.davis240c_encoder import DavisWordEncoder, EncoderConfig
-from drivers_mock.davis_activity import (
+from mocaprig.acquire.commands import load_decoded
+from mocaprig.acquire.davis240c_decode import ApsFrame, DavisDecoder, SpecialType
+from mocaprig.acquire.events import make_events
+from mocaprig.cli import main
+from mocaprig.drivers_mock.davis240c_encoder import DavisWordEncoder, EncoderConfig
+from mocaprig.drivers_mock.davis_activity import (
     EXT_INPUT_DTYPE,
     IMU_DTYPE,
     ApsExposure,

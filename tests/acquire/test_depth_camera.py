@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire import depth_camera
-from acquire.depth_camera import (
+from mocaprig.acquire import depth_camera
+from mocaprig.acquire.depth_camera import (
     ALLOWED_MODES,
     CAMERA_BACKENDS,
     CameraInfo,
@@ -26,7 +26,7 @@ from acquire.depth_camera import (
     open_cameras,
     register_camera_backend,
 )
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceError, ValidationError
 
 
 def timing(

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from acquire.events import EVENT_DTYPE, check_events, empty_events, make_events
+from mocaprig.acquire.events import EVENT_DTYPE, check_events, empty_events, make_events
+from mocaprig.errors import ValidationError
 
 
 def test_make_events_fills_every_column_and_normalises_polarity() -> None:

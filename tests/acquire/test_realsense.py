@@ -3,7 +3,7 @@
 Pinned to pyrealsense2 2.59.1 (realsense-d415.md §3.5, §4.1): a ``software_device`` with a
 "Stereo Module" sensor carrying depth Z16 and IR index 1 Y8 streams, D415-like options and
 per-frame metadata; frames are injected with ``on_video_frame`` and read back through
-:class:`acquire.realsense.RealSenseCamera` exactly as from a USB camera.
+:class:`mocaprig.acquire.realsense.RealSenseCamera` exactly as from a USB camera.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     DepthCamera,
     Distortion,
     SensorOptions,
@@ -25,7 +25,7 @@ from acquire.depth_camera import (
     SyncMode,
     TimestampDomain,
 )
-from acquire.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceError, ValidationError
 
 rs = pytest.importorskip(
     "pyrealsense2",
@@ -33,7 +33,7 @@ rs = pytest.importorskip(
     exc_type=ImportError,
 )
 
-from acquire.realsense import RealSenseCamera, enumerate_cameras  # noqa: E402
+from mocaprig.acquire.realsense import RealSenseCamera, enumerate_cameras  # noqa: E402
 
 SERIAL = "822512060411"
 W, H, FPS = 848, 480, 30
@@ -332,7 +332,7 @@ def test_enumerate_without_cameras_is_empty() -> None:
 
 
 def test_missing_pyrealsense2_gives_the_install_hint(monkeypatch: pytest.MonkeyPatch) -> None:
-    from acquire import realsense
+    from mocaprig.acquire import realsense
 
     real = importlib.import_module
 
@@ -348,7 +348,7 @@ def test_missing_pyrealsense2_gives_the_install_hint(monkeypatch: pytest.MonkeyP
 
 def test_two_software_cameras_through_the_adapter_pass_the_sync_check() -> None:
     """Master + slave software devices → adapter → SyncChecker (slave clock +40 ppm)."""
-    from acquire.d415_sync import SyncCheckConfig, SyncChecker
+    from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker
 
     master_sw, slave_sw = make_software_d415("100000000001"), make_software_d415("100000000002")
     master, slave = started(master_sw, SyncMode.MASTER), started(slave_sw, SyncMode.SLAVE)

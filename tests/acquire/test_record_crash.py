@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 
-from acquire.cli import main
+from mocaprig.cli import main
 
 _RIG = "format_version = 1\nmock = true\n[syncbox]\nport = 'mock'\n"
 
@@ -56,7 +56,7 @@ def test_kill_9_mid_recording_info_lists_complete_chunks_and_recover_indexes(
     rig.write_text(_RIG)
     crashed = tmp_path / "crashed.mcap"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "acquire.cli", "record", "--rig", str(rig), "--seconds", "120",
+        [sys.executable, "-m", "mocaprig.cli", "record", "--rig", str(rig), "--seconds", "120",
          "--out", str(crashed)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
-from acquire import davis240c, depth_camera
-from acquire.cli import main
-from acquire.errors import DeviceError
-from acquire.recording import Recording, info
+from mocaprig.acquire import davis240c, depth_camera
+from mocaprig.acquire.recording import Recording, info
+from mocaprig.cli import main
+from mocaprig.errors import DeviceError
 
 _MOCK_RIG = """\
 format_version = 1

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.cli import main
-from acquire.commands_record import read_events_txt
-from acquire.recording import Recording
+from mocaprig.acquire.commands_record import read_events_txt
+from mocaprig.acquire.recording import Recording
+from mocaprig.cli import main
 
 _DATA = Path(__file__).parent / "data" / "rpg_shapes_rotation_events_head.txt"
 _TOPIC = "/davis/imported/events"

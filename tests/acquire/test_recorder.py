@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from acquire.errors import RecordingError, ValidationError
-from acquire.events import make_events
-from acquire.recorder import Recorder, StopReason, StreamSource, record_sources, split_path
-from acquire.recording import Recording, info, recover
-from acquire.recording_format import EventPacket, ImageMsg, LogMsg, SchemaDef, SyncPulses
+from mocaprig.acquire.events import make_events
+from mocaprig.acquire.recorder import Recorder, StopReason, StreamSource, record_sources, split_path
+from mocaprig.acquire.recording import Recording, info, recover
+from mocaprig.acquire.recording_format import EventPacket, ImageMsg, LogMsg, SchemaDef, SyncPulses
+from mocaprig.errors import RecordingError, ValidationError
 
 
 def _events(i: int, n: int = 100) -> EventPacket:
@@ -203,9 +203,9 @@ _CHILD = textwrap.dedent(
     import sys, time
     import numpy as np
     from pathlib import Path
-    from acquire.events import make_events
-    from acquire.recorder import Recorder, stop_on_signals
-    from acquire.recording_format import EventPacket
+    from mocaprig.acquire.events import make_events
+    from mocaprig.acquire.recorder import Recorder, stop_on_signals
+    from mocaprig.acquire.recording_format import EventPacket
     rec = Recorder(Path(sys.argv[1]), max_chunk_age_s=0.1, compression="zstd")
     with rec, stop_on_signals(rec):
         h = rec.add_stream("/davis/1/events", EventPacket)

@@ -9,13 +9,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from acquire.errors import DeviceError
-from acquire.recorder import Recorder, StreamSource, record_sources
-from acquire.recording import Recording, info
+from mocaprig.acquire.recorder import Recorder, StreamSource, record_sources
+from mocaprig.acquire.recording import Recording, info
+from mocaprig.errors import DeviceError
 
 
 def _mock_d415() -> Any:
-    from acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
 
     try:
         (cam,) = open_cameras("mock", count=1, pacing="asap", seconds=4.0)
@@ -27,7 +27,7 @@ def _mock_d415() -> Any:
 
 
 def test_d415_source_records_ir_depth_timing_and_calibration(tmp_path: Path) -> None:
-    from acquire.commands_record import DepthCameraSource
+    from mocaprig.acquire.commands_record import DepthCameraSource
 
     cam, mode, opts = _mock_d415()
     src = DepthCameraSource(cam, stream=mode, options=opts)
@@ -62,8 +62,8 @@ def test_d415_source_records_ir_depth_timing_and_calibration(tmp_path: Path) -> 
 
 @pytest.mark.slow
 def test_davis_source_records_through_the_driver_and_usb_mock(tmp_path: Path) -> None:
-    from acquire.commands_record import DavisSource
-    from acquire.davis240c import Davis240C, load_mock_backend
+    from mocaprig.acquire.commands_record import DavisSource
+    from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
 
     try:
         cam = Davis240C.open(backend=load_mock_backend(seconds=6.0))
@@ -94,9 +94,9 @@ def test_davis_source_records_through_the_driver_and_usb_mock(tmp_path: Path) ->
 
 
 def test_syncbox_source_records_pulse_reports(tmp_path: Path) -> None:
-    from acquire.commands_record import SyncBoxSource
-    from acquire.recording_format import SyncPulses
-    from acquire.syncbox import SyncBox, open_mock_syncbox
+    from mocaprig.acquire.commands_record import SyncBoxSource
+    from mocaprig.acquire.recording_format import SyncPulses
+    from mocaprig.acquire.syncbox import SyncBox, open_mock_syncbox
 
     try:
         mock = open_mock_syncbox(seed=1)

@@ -11,18 +11,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acquire.cli import main
-from acquire.errors import RecordingError
-from acquire.events import make_events
-from acquire.recorder import Attachment, Recorder, StreamSource
-from acquire.recording import Recording, info, recover
-from acquire.recording_format import (
+from mocaprig.acquire.events import make_events
+from mocaprig.acquire.recorder import Attachment, Recorder, StreamSource
+from mocaprig.acquire.recording import Recording, info, recover
+from mocaprig.acquire.recording_format import (
     IMU_DTYPE,
     EventPacket,
     ImageMsg,
     ImuPacket,
     topic,
 )
+from mocaprig.cli import main
+from mocaprig.errors import RecordingError
 
 
 def _write_sample(path: Path) -> dict[str, object]:
@@ -297,7 +297,7 @@ class _TinySource:
 
 
 def test_record_command_over_a_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from acquire.commands_record import record
+    from mocaprig.acquire.commands_record import record
 
     out = tmp_path / "r.mcap"
     sources: list[StreamSource] = [_TinySource()]
@@ -362,7 +362,11 @@ def test_rpg_text_round_trips_exactly_to_the_ns(
     import io
     import tempfile
 
-    from acquire.commands_record import _read_events_txt_lines, export_events_txt, read_events_txt
+    from mocaprig.acquire.commands_record import (
+        _read_events_txt_lines,
+        export_events_txt,
+        read_events_txt,
+    )
 
     arr = np.asarray(rows, dtype=np.int64).reshape(-1, 4)
     t_ns = np.sort(arr[:, 0])
@@ -397,7 +401,7 @@ def test_rpg_text_round_trips_exactly_to_the_ns(
     ],
 )
 def test_rpg_text_times_parse_exactly(tmp_path: Path, text: str, t_ns: int) -> None:
-    from acquire.commands_record import read_events_txt
+    from mocaprig.acquire.commands_record import read_events_txt
 
     p = tmp_path / "e.txt"
     p.write_text(f"{text} 1 2 1\n")
@@ -408,7 +412,7 @@ def test_rpg_text_times_parse_exactly(tmp_path: Path, text: str, t_ns: int) -> N
 
 @pytest.mark.parametrize("text", ["0.0000000011", "1e-10", "0x10", "1_0", "nan"])
 def test_rpg_text_refuses_times_finer_than_ns_or_not_decimal(tmp_path: Path, text: str) -> None:
-    from acquire.commands_record import read_events_txt
+    from mocaprig.acquire.commands_record import read_events_txt
 
     p = tmp_path / "e.txt"
     p.write_text(f"0.1 1 2 1\n{text} 1 2 1\n")
@@ -452,7 +456,7 @@ def test_put_from_many_threads_counts_every_message(tmp_path: Path) -> None:
 def test_fast_and_line_readers_agree_on_layout_variants(
     tmp_path: Path, text: str, fast: bool
 ) -> None:
-    from acquire.commands_record import (
+    from mocaprig.acquire.commands_record import (
         _read_events_txt_fast,
         _read_events_txt_lines,
         read_events_txt,

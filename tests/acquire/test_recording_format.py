@@ -7,9 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acquire.errors import RecordingError, ValidationError
-from acquire.events import EVENT_DTYPE, make_events
-from acquire.recording_format import (
+from mocaprig.acquire.events import EVENT_DTYPE, make_events
+from mocaprig.acquire.recording_format import (
     IMU_DTYPE,
     MAX_EVENT_PACKET_SPAN_US,
     MESSAGE_TYPES,
@@ -29,6 +28,7 @@ from acquire.recording_format import (
     split_events,
     topic,
 )
+from mocaprig.errors import RecordingError, ValidationError
 
 
 @settings(max_examples=50, deadline=None)
@@ -80,7 +80,7 @@ def test_event_packet_ns_times_round_trip_exactly(
 
 def _legacy_encode(ev: np.ndarray) -> bytes:
     """The µs-only encoder as it was before ``t_ns`` (ns = µs × 1000, time_base = t0 × 1000)."""
-    from acquire.recording_format import _PB
+    from mocaprig.acquire.recording_format import _PB
 
     t0 = int(ev["t"].min())
     words = (
@@ -135,7 +135,7 @@ def test_event_packet_ns_span_limit() -> None:
 
 def test_event_blob_is_ros_mono_layout() -> None:
     ev = make_events([1000, 1003], [5, 239], [7, 179], [1, 0])
-    from acquire.recording_format import _PB
+    from mocaprig.acquire.recording_format import _PB
 
     pb = _PB["EventPacket"]()
     pb.ParseFromString(EventPacket(ev).encode())
@@ -209,7 +209,7 @@ def test_small_messages_round_trip(msg: object) -> None:
 
 
 def test_dtypes_match_the_davis_decoder() -> None:
-    dec = pytest.importorskip("acquire.davis240c_decode")
+    dec = pytest.importorskip("mocaprig.acquire.davis240c_decode")
     assert dec.IMU_SAMPLE_DTYPE == IMU_DTYPE
     assert dec.SPECIAL_DTYPE == SPECIAL_DTYPE
 
@@ -231,12 +231,12 @@ def test_topic_names() -> None:
 def test_proto_file_matches_the_descriptor_table() -> None:
     from pathlib import Path
 
-    import acquire
-    from acquire.recording_format import proto_source
+    import mocaprig.acquire
+    from mocaprig.acquire.recording_format import proto_source
 
-    path = Path(acquire.__file__).parent / "schemas" / "mocaprig.proto"
+    path = Path(mocaprig.acquire.__file__).parent / "schemas" / "mocaprig.proto"
     assert path.read_text() == proto_source(), (
         "acquire/schemas/mocaprig.proto is stale; regenerate it with "
-        "python -c 'from acquire.recording_format import proto_source as p; "
+        "python -c 'from mocaprig.acquire.recording_format import proto_source as p; "
         'open("acquire/schemas/mocaprig.proto", "w").write(p())\''
     )

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from acquire.davis240c_config import BiasPreset
-from acquire.errors import ValidationError
-from acquire.rig_file import RIG_FILE_VERSION, load_rig_file, parse_rig_file
+from mocaprig.acquire.davis240c_config import BiasPreset
+from mocaprig.acquire.rig_file import RIG_FILE_VERSION, load_rig_file, parse_rig_file
+from mocaprig.errors import ValidationError
 
 _FULL = """\
 format_version = 1

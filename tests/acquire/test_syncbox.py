@@ -14,14 +14,14 @@ from pathlib import Path
 import pytest
 import serial
 
-from acquire.errors import DeviceError, ValidationError
-from acquire.syncbox import (
+from mocaprig.acquire.syncbox import (
     PROTOCOL_VERSION,
     SyncBox,
     SyncBoxError,
     SyncBoxMode,
     open_mock_syncbox,
 )
+from mocaprig.errors import DeviceError, ValidationError
 
 Responder = Callable[[str], list[str]]
 
@@ -314,7 +314,7 @@ def test_mock_syncbox_disconnect_fault_gives_up() -> None:
 
 
 def test_find_syncboxes_lists_port_names() -> None:
-    from acquire.syncbox import find_syncboxes
+    from mocaprig.acquire.syncbox import find_syncboxes
 
     ports = find_syncboxes()
     assert all(isinstance(p, str) for p in ports)

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import CalibrationError
-from calib.calibration import (
+from mocaprig.calib.calibration import (
     Calibration,
     CameraCalibration,
     ClockMapping,
@@ -18,6 +17,7 @@ from calib.calibration import (
     read_calibration,
     write_calibration,
 )
+from mocaprig.errors import CalibrationError
 
 
 def _camera(name: str = "d415/123", seed: int = 0) -> CameraCalibration:

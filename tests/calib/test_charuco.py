@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import CalibrationError, ValidationError
-from calib.charuco import (
+from mocaprig.calib.charuco import (
     BoardView,
     CharucoBoardSpec,
     IntrinsicsResult,
@@ -29,9 +28,10 @@ from calib.charuco import (
     write_board_spec,
     write_intrinsics,
 )
-from drivers_mock.charuco_render import intrinsics_poses, render_board, shared_poses
-from drivers_mock.rig import PinholeCamera, Rig, default_rig, project
-from drivers_mock.scenario import stream_rng
+from mocaprig.drivers_mock.charuco_render import intrinsics_poses, render_board, shared_poses
+from mocaprig.drivers_mock.rig import PinholeCamera, Rig, default_rig, project
+from mocaprig.drivers_mock.scenario import stream_rng
+from mocaprig.errors import CalibrationError, ValidationError
 
 #: The board of the tests: 0.9 × 0.75 m, 20 inner corners (big enough for the DAVIS at 2.5 m).
 SPEC = CharucoBoardSpec(6, 5, 0.15, 0.1125, "DICT_4X4_50")

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from calib.vicon import MarkerTrajectories, write_c3d
+from mocaprig.calib.vicon import MarkerTrajectories, write_c3d
+from mocaprig.cli import main
 
 
 @pytest.fixture

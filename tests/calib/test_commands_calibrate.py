@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from acquire.cli import main
-from acquire.recording import Recording
-from calib.calibration import calibration_to_dict, read_calibration
-from calib.vicon_calibration import ATTACHMENT_NAME
-from drivers_mock import simulate_session
+from mocaprig.acquire.recording import Recording
+from mocaprig.calib.calibration import calibration_to_dict, read_calibration
+from mocaprig.calib.vicon_calibration import ATTACHMENT_NAME
+from mocaprig.cli import main
+from mocaprig.drivers_mock import simulate_session
 
 
 @pytest.mark.parametrize("argv", [["calibrate"], ["calibrate", "vicon"], ["calibrate", "evaluate"]])

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.cli import main
-from calib.calibration import read_calibration
-from calib.charuco import CharucoBoardSpec, read_intrinsics, write_board_spec
-from drivers_mock.charuco_render import BoardRecording, write_board_recording
+from mocaprig.calib.calibration import read_calibration
+from mocaprig.calib.charuco import CharucoBoardSpec, read_intrinsics, write_board_spec
+from mocaprig.cli import main
+from mocaprig.drivers_mock.charuco_render import BoardRecording, write_board_recording
 
 SPEC = CharucoBoardSpec(6, 5, 0.15, 0.1125, "DICT_4X4_50")
 

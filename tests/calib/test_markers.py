@@ -9,11 +9,10 @@ import numpy.typing as npt
 import pytest
 from scipy.spatial import cKDTree
 
-from acquire.errors import CalibrationError, ValidationError
-from acquire.recorder import Recorder
-from acquire.recording import Recording
-from acquire.recording_format import CameraCalibrationMsg, D415FrameInfo, ImageMsg, topic
-from calib.markers import (
+from mocaprig.acquire.recorder import Recorder
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import CameraCalibrationMsg, D415FrameInfo, ImageMsg, topic
+from mocaprig.calib.markers import (
     MarkerFrame,
     crop_volume,
     detect_blobs,
@@ -23,8 +22,9 @@ from calib.markers import (
     merge_views,
     to_world,
 )
-from drivers_mock.d415_render import IrSettings, RenderedFrame, SceneRenderer
-from drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.drivers_mock.d415_render import IrSettings, RenderedFrame, SceneRenderer
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.errors import CalibrationError, ValidationError
 
 K = np.array([[623.0, 0.0, 424.0], [0.0, 623.0, 240.0], [0.0, 0.0, 1.0]])
 

@@ -18,8 +18,7 @@ import numpy.typing as npt
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import CalibrationError
-from calib.registration import (
+from mocaprig.calib.registration import (
     BundleProblem,
     bundle_adjust,
     bundle_adjust_camera,
@@ -32,7 +31,8 @@ from calib.registration import (
     transform_points,
     trimmed_icp,
 )
-from drivers_mock import build_scenario, look_at
+from mocaprig.drivers_mock import build_scenario, look_at
+from mocaprig.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
 

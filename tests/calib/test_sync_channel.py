@@ -10,9 +10,9 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from acquire.errors import CalibrationError, ValidationError
-from calib.calibration import ClockMapping
-from calib.time_align import SyncEdges, clock_from_sync_edges, find_sync_edges
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.time_align import SyncEdges, clock_from_sync_edges, find_sync_edges
+from mocaprig.errors import CalibrationError, ValidationError
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]

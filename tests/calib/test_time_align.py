@@ -10,10 +10,9 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from acquire.errors import CalibrationError, ValidationError
-from calib.calibration import ClockMapping
-from calib.markers import MarkerFrame
-from calib.time_align import (
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.markers import MarkerFrame
+from mocaprig.calib.time_align import (
     ClapDetection,
     clock_from_claps,
     clock_from_pulses,
@@ -26,10 +25,11 @@ from calib.time_align import (
     speed_from_trajectories,
     vicon_times_ns,
 )
-from calib.vicon import MarkerTrajectories, read_trajectories
-from drivers_mock.clock import DeviceClock
-from drivers_mock.scenario import Scenario, build_scenario
-from drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d
+from mocaprig.calib.vicon import MarkerTrajectories, read_trajectories
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.drivers_mock.vicon import ViconCapture, simulate_vicon, write_c3d
+from mocaprig.errors import CalibrationError, ValidationError
 from tests.calib.test_markers import render_frames
 
 
@@ -270,7 +270,7 @@ def _projected_frames(
     sc: Scenario, cam: int, t_session: npt.NDArray[np.int64], *, noise_px: float, seed: int
 ) -> list[MarkerFrame]:
     """Marker frames of one D415 made by projecting the true markers (blob-detector noise)."""
-    from drivers_mock.rig import project
+    from mocaprig.drivers_mock.rig import project
 
     rng = np.random.default_rng(seed)
     spec = sc.rig.d415[cam]
@@ -431,7 +431,7 @@ def test_clock_from_pulses_refuses_foreign_trains() -> None:
 
 
 def test_find_claps_davis_needs_events() -> None:
-    from acquire.events import make_events
+    from mocaprig.acquire.events import make_events
 
     ev = make_events(np.arange(10), np.zeros(10), np.zeros(10), np.ones(10))
     with pytest.raises(CalibrationError, match="only 10 events"):

@@ -13,9 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire.errors import CalibrationError, ValidationError
-from calib import vicon
-from calib.vicon import (
+from mocaprig.calib import vicon
+from mocaprig.calib.vicon import (
     MarkerTrajectories,
     ViconFileError,
     parse_length_unit,
@@ -25,6 +24,7 @@ from calib.vicon import (
     validate_c3d,
     write_c3d,
 )
+from mocaprig.errors import CalibrationError, ValidationError
 
 Proc = Literal["intel", "dec", "sgi"]
 

@@ -11,10 +11,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquire.errors import ValidationError
-from calib import vicon
-from calib.time_align import analog_times_ns, vicon_times_ns
-from calib.vicon import (
+from mocaprig.calib import vicon
+from mocaprig.calib.time_align import analog_times_ns, vicon_times_ns
+from mocaprig.calib.vicon import (
     AnalogChannels,
     MarkerTrajectories,
     ViconFileError,
@@ -22,6 +21,7 @@ from calib.vicon import (
     read_c3d_analogs,
     write_c3d,
 )
+from mocaprig.errors import ValidationError
 
 F64 = npt.NDArray[np.float64]
 

@@ -14,16 +14,16 @@ import numpy.typing as npt
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import CalibrationError
-from calib.calibration import Calibration, CameraCalibration, ClockMapping
-from calib.vicon import MarkerTrajectories, write_c3d
-from calib.vicon_calibration import (
+from mocaprig.calib.calibration import Calibration, CameraCalibration, ClockMapping
+from mocaprig.calib.vicon import MarkerTrajectories, write_c3d
+from mocaprig.calib.vicon_calibration import (
     CalibrationOptions,
     calibrate_vicon,
     evaluate_calibration,
     vicon_static_start,
 )
-from drivers_mock import build_scenario, look_at
+from mocaprig.drivers_mock import build_scenario, look_at
+from mocaprig.errors import CalibrationError
 
 F64 = npt.NDArray[np.float64]
 U32_NS = (1 << 32) * 1000
@@ -203,7 +203,7 @@ def test_evaluate_scores_a_davis_clock_on_its_reset_time_base(tmp_path: Path) ->
 
 
 def test_davis_pulses_refuse_a_train_already_running_at_the_reset() -> None:
-    from calib.vicon_calibration import _davis_clock, _DavisPulses
+    from mocaprig.calib.vicon_calibration import _davis_clock, _DavisPulses
 
     period = 33_333_333
     frames = 10_000_000_000 + np.arange(60, dtype=np.int64) * period

@@ -8,8 +8,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from calib.calibration import ClockMapping
-from calib.vicon_calibration import _line_clock, _pooled_clocks, _tie_by_counters
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.vicon_calibration import _line_clock, _pooled_clocks, _tie_by_counters
 
 PERIOD_NS = 33_333_333
 VICON_DRIFT = 4.9e-6

@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.vicon import MarkerTrajectories, read_c3d, read_c3d_analogs, write_c3d
-from calib.vicon_calibration import (
+from mocaprig.calib.vicon import MarkerTrajectories, read_c3d, read_c3d_analogs, write_c3d
+from mocaprig.calib.vicon_calibration import (
     CalibrationOptions,
     ViconCalibrationResult,
     _sync_channel_edges,
     calibrate_vicon,
     evaluate_calibration,
 )
-from drivers_mock import simulate_session
+from mocaprig.drivers_mock import simulate_session
 
 
 @pytest.fixture(scope="module")
@@ -97,9 +97,9 @@ def test_sync_clocks_fix_a_prior_a_period_out_and_map_a_slave_through_its_tie() 
     """The master's video prior 41 ms off (more than a quarter period): the edges pair one
     period out and the reprojection score (here: the true error) moves it back; a slave tied to
     the master by frame counters gets the master's clock plus its 100 µs trigger delay."""
-    from calib.calibration import ClockMapping
-    from calib.time_align import find_sync_edges
-    from calib.vicon_calibration import _sync_clocks, _SyncInputs, _Tie
+    from mocaprig.calib.calibration import ClockMapping
+    from mocaprig.calib.time_align import find_sync_edges
+    from mocaprig.calib.vicon_calibration import _sync_clocks, _SyncInputs, _Tie
     from tests.calib.test_sync_channel import _prior, _rig
 
     rig = _rig(11)

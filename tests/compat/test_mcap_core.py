@@ -18,10 +18,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from acquire.events import make_events
-from acquire.recorder import Attachment, Recorder
-from acquire.recording import Recording
-from acquire.recording_format import (
+from mocaprig.acquire.events import make_events
+from mocaprig.acquire.recorder import Attachment, Recorder
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import (
     IMU_DTYPE,
     SPECIAL_DTYPE,
     CameraCalibrationMsg,

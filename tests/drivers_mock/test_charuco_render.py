@@ -7,17 +7,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.errors import RecordingError
-from acquire.recording import Recording
-from calib.charuco import CharucoBoardSpec, detect_charuco
-from drivers_mock.charuco_render import (
+from mocaprig.acquire.recording import Recording
+from mocaprig.calib.charuco import CharucoBoardSpec, detect_charuco
+from mocaprig.drivers_mock.charuco_render import (
     intrinsics_poses,
     render_board,
     shared_poses,
     write_board_recording,
 )
-from drivers_mock.rig import default_rig, project
-from drivers_mock.scenario import stream_rng
+from mocaprig.drivers_mock.rig import default_rig, project
+from mocaprig.drivers_mock.scenario import stream_rng
+from mocaprig.errors import RecordingError
 
 SPEC = CharucoBoardSpec(6, 5, 0.15, 0.1125, "DICT_4X4_50")
 RIG = default_rig(stream_rng(0, "rig"))

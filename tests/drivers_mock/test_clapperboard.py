@@ -6,8 +6,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from acquire.errors import ValidationError
-from drivers_mock.clapperboard import Clapperboard, make_clapperboard
+from mocaprig.drivers_mock.clapperboard import Clapperboard, make_clapperboard
+from mocaprig.errors import ValidationError
 
 MS = 1_000_000
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from mocaprig.drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
+from mocaprig.errors import ValidationError
 
 
 def test_round_trip_returns_session_time_within_one_tick_and_jitter() -> None:

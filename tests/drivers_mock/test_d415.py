@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from acquire.depth_camera import (
+from mocaprig.acquire.depth_camera import (
     DepthCamera,
     FrameSet,
     SensorOptions,
@@ -18,11 +18,11 @@ from acquire.depth_camera import (
     TimestampDomain,
     load_mock_factory,
 )
-from acquire.errors import DeviceError, ValidationError
-from drivers_mock.d415 import D415Fault, MockD415, mock_cameras, parse_faults
-from drivers_mock.d415_render import IrSettings, Quality, SceneRenderer, mode_intrinsics
-from drivers_mock.rig import D415Spec, PinholeCamera, look_at, project
-from drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.drivers_mock.d415 import D415Fault, MockD415, mock_cameras, parse_faults
+from mocaprig.drivers_mock.d415_render import IrSettings, Quality, SceneRenderer, mode_intrinsics
+from mocaprig.drivers_mock.rig import D415Spec, PinholeCamera, look_at, project
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.errors import DeviceError, ValidationError
 
 _log = logging.getLogger(__name__)
 

@@ -15,15 +15,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from acquire.errors import ValidationError
-from acquire.events import make_events
-from drivers_mock.davis240c_encoder import (
+from mocaprig.acquire.events import make_events
+from mocaprig.drivers_mock.davis240c_encoder import (
     TIMESTAMP_WRAP_US,
     DavisWordEncoder,
     EncoderConfig,
     encode_stream,
 )
-from drivers_mock.davis_activity import (
+from mocaprig.drivers_mock.davis_activity import (
     EXT_INPUT_DTYPE,
     IMU_DTYPE,
     ApsExposure,
@@ -31,6 +30,7 @@ from drivers_mock.davis_activity import (
     ExtInputEdge,
     empty_activity,
 )
+from mocaprig.errors import ValidationError
 
 INT32_MAX = 2**31 - 1
 
@@ -458,8 +458,8 @@ def test_bandwidth_cap_drops_dvs_events():
 
 
 def test_round_trip_through_the_driver_decoder():
-    decode = pytest.importorskip("acquire.davis240c_decode")
-    from drivers_mock.davis240c_usb import SyntheticDavisSource
+    decode = pytest.importorskip("mocaprig.acquire.davis240c_decode")
+    from mocaprig.drivers_mock.davis240c_usb import SyntheticDavisSource
 
     source = SyntheticDavisSource(seed=2, event_rate_hz=50_000.0)
     source.reset(session_ns=0)

@@ -7,19 +7,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from acquire.events import EVENT_DTYPE
-from drivers_mock.davis240c_render import DavisRenderer
-from drivers_mock.davis240c_sim import (
+from mocaprig.acquire.events import EVENT_DTYPE
+from mocaprig.drivers_mock.davis240c_render import DavisRenderer
+from mocaprig.drivers_mock.davis240c_sim import (
     DavisSimulator,
     DvsNoise,
     edge_fraction,
     photoreceptor_lowpass,
     simulate_davis,
 )
-from drivers_mock.davis_activity import DavisActivity, ExtInputEdge
-from drivers_mock.scenario import Scenario, build_scenario
-from process.body.motion import Motion
+from mocaprig.drivers_mock.davis_activity import DavisActivity, ExtInputEdge
+from mocaprig.drivers_mock.scenario import Scenario, build_scenario
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.motion import Motion
 
 MS_NS = 1_000_000
 #: A fast stretch of the karate scenario (seed 3): a kick starts ≈ 1.8 s.

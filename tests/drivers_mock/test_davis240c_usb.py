@@ -15,8 +15,8 @@ import pytest
 import usb.core
 import usb.util
 
-from acquire.events import make_events
-from drivers_mock.davis240c_usb import (
+from mocaprig.acquire.events import make_events
+from mocaprig.drivers_mock.davis240c_usb import (
     DAVIS240C_PID,
     DAVIS_VID,
     Davis240CBackend,
@@ -24,7 +24,7 @@ from drivers_mock.davis240c_usb import (
     SyntheticDavisSource,
     mock_backend,
 )
-from drivers_mock.davis_activity import DavisActivity
+from mocaprig.drivers_mock.davis_activity import DavisActivity
 from tests.drivers_mock.test_davis240c_encoder import host_decode
 
 MUX, DVS, APS, IMU, EXTINPUT, BIAS, SYSINFO, USBMOD = 0, 1, 2, 3, 4, 5, 6, 9

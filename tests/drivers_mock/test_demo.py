@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from acquire.cli import main
-from acquire.errors import RecordingError
-from drivers_mock.demo import run_demo
+from mocaprig.cli import main
+from mocaprig.drivers_mock.demo import run_demo
+from mocaprig.errors import RecordingError
 
 
 def test_demo_command_reports_figures_against_truth(

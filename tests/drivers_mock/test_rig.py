@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from drivers_mock.rig import PinholeCamera, default_rig, look_at, project
+from mocaprig.drivers_mock.rig import PinholeCamera, default_rig, look_at, project
+from mocaprig.errors import ValidationError
 
 
 def _camera(T=None, dist=None) -> PinholeCamera:

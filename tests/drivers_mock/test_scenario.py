@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import project
-from drivers_mock.scenario import SCENARIOS, build_scenario
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import project
+from mocaprig.drivers_mock.scenario import SCENARIOS, build_scenario
+from mocaprig.errors import ValidationError
 
 SECOND = 1_000_000_000
 

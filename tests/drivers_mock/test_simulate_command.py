@@ -8,9 +8,9 @@ import ezc3d
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from drivers_mock.scenario import build_scenario
-from drivers_mock.truth import read_truth
+from mocaprig.cli import main
+from mocaprig.drivers_mock.scenario import build_scenario
+from mocaprig.drivers_mock.truth import read_truth
 
 
 @pytest.fixture(scope="module")

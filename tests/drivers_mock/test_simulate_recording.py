@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from acquire.davis240c_decode import SpecialType
-from acquire.errors import ValidationError
-from acquire.recording import RecordedMessage, Recording, info
-from drivers_mock.scenario import build_scenario
-from drivers_mock.session import record_session
-from drivers_mock.truth import read_truth
+from mocaprig.acquire.davis240c_decode import SpecialType
+from mocaprig.acquire.recording import RecordedMessage, Recording, info
+from mocaprig.cli import main
+from mocaprig.drivers_mock.scenario import build_scenario
+from mocaprig.drivers_mock.session import record_session
+from mocaprig.drivers_mock.truth import read_truth
+from mocaprig.errors import ValidationError
 
 PULSE_WIDTH_US = 50  # the D415 master's sync pulse (DavisSimulator.sync_pulse_us)
 

@@ -8,9 +8,9 @@ from collections.abc import Iterator
 import pytest
 import serial
 
-from acquire.depth_camera import load_mock_factory
-from acquire.errors import ValidationError
-from drivers_mock.syncbox import MockSyncBox, mock_syncbox
+from mocaprig.acquire.depth_camera import load_mock_factory
+from mocaprig.drivers_mock.syncbox import MockSyncBox, mock_syncbox
+from mocaprig.errors import ValidationError
 
 
 class _Host:

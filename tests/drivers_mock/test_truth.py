@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from acquire.errors import RecordingError
-from drivers_mock.scenario import build_scenario
-from drivers_mock.truth import read_truth, write_truth
+from mocaprig.drivers_mock.scenario import build_scenario
+from mocaprig.drivers_mock.truth import read_truth, write_truth
+from mocaprig.errors import RecordingError
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,10 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from drivers_mock.clock import DeviceClock
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import ViconSpec
-from drivers_mock.vicon import (
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import ViconSpec
+from mocaprig.drivers_mock.vicon import (
     ViconCapture,
     capture_markers,
     vicon_frame_times_ns,

@@ -9,17 +9,16 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from acquire.errors import ValidationError
-from acquire.recording import Recording
-from acquire.recording_format import topic
-from calib.time_align import analog_times_ns, find_sync_edges
-from calib.vicon import read_c3d, read_c3d_analogs
-from drivers_mock import simulate_session
-from drivers_mock.clock import DeviceClock
-from drivers_mock.noise import NoiseSettings
-from drivers_mock.rig import ViconSpec
-from drivers_mock.truth import read_truth
-from drivers_mock.vicon import (
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import topic
+from mocaprig.calib.time_align import analog_times_ns, find_sync_edges
+from mocaprig.calib.vicon import read_c3d, read_c3d_analogs
+from mocaprig.drivers_mock import simulate_session
+from mocaprig.drivers_mock.clock import DeviceClock
+from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import ViconSpec
+from mocaprig.drivers_mock.truth import read_truth
+from mocaprig.drivers_mock.vicon import (
     SYNC_CHANNEL,
     SyncWiring,
     ViconCapture,
@@ -27,6 +26,7 @@ from drivers_mock.vicon import (
     simulate_sync_channel,
     write_c3d,
 )
+from mocaprig.errors import ValidationError
 
 I64 = npt.NDArray[np.int64]
 F64 = npt.NDArray[np.float64]

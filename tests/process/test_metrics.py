@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from process.metrics import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.metrics import (
     PCK_THRESHOLDS_MM,
     mean_error,
     pck,

@@ -7,10 +7,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from process.body.bvh import BvhClip
-from process.body.kinematics import forward_kinematics
-from process.body.shape import BodyShape, rest_offsets
-from process.body.skeleton import DOF_LIMITS_RAD, JOINTS, PARENTS, POSE_DIM, ROOT_DIM
+from mocaprig.process.body.bvh import BvhClip
+from mocaprig.process.body.kinematics import forward_kinematics
+from mocaprig.process.body.shape import BodyShape, rest_offsets
+from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, JOINTS, PARENTS, POSE_DIM, ROOT_DIM
 
 
 def random_poses(rng: np.random.Generator, n: int) -> npt.NDArray[np.float64]:

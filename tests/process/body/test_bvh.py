@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ProcessingError, ValidationError
-from process.body.bvh import (
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body.bvh import (
     BvhClip,
     bvh_forward_kinematics,
     bvh_global_positions,
@@ -23,9 +23,9 @@ from process.body.bvh import (
     retarget_bvh,
     retarget_errors,
 )
-from process.body.kinematics import forward_kinematics, within_limits
-from process.body.procedural import floor_clearance_m, make_motion
-from process.body.shape import BodyShape
+from mocaprig.process.body.kinematics import forward_kinematics, within_limits
+from mocaprig.process.body.procedural import floor_clearance_m, make_motion
+from mocaprig.process.body.shape import BodyShape
 from tests.process.body._body_helpers import BVH_TO_BODY, motion_as_bvh
 
 
@@ -164,7 +164,7 @@ def _scaled_skeleton_bvh(leg: float) -> str:
 def test_unit_is_detected_from_skeleton_size(
     leg: float, scale: float, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level(logging.INFO, logger="process.body.bvh"):
+    with caplog.at_level(logging.INFO, logger="mocaprig.process.body.bvh"):
         clip = parse_bvh(_scaled_skeleton_bvh(leg))
     assert clip.unit_scale == scale
     assert "reading lengths as" in caplog.text

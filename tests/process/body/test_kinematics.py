@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from process.body.kinematics import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import (
     EVENTCAP_KEYPOINTS,
     clamp_to_limits,
     clamp_to_limits_torch,
@@ -26,8 +26,8 @@ from process.body.kinematics import (
     t_pose,
     within_limits,
 )
-from process.body.shape import BodyShape, rest_offsets
-from process.body.skeleton import (
+from mocaprig.process.body.shape import BodyShape, rest_offsets
+from mocaprig.process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
     DOF_LIMITS_RAD,
     DOF_NAMES,

@@ -7,18 +7,22 @@ import numpy.typing as npt
 import pytest
 import torch
 
-from acquire.errors import ValidationError
-from process.body.kinematics import forward_kinematics, forward_kinematics_torch, neutral_pose
-from process.body.markers import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import (
+    forward_kinematics,
+    forward_kinematics_torch,
+    neutral_pose,
+)
+from mocaprig.process.body.markers import (
     COMMON_MARKERS,
     MARKER_NAMES,
     MarkerSet,
     marker_positions,
     marker_positions_torch,
 )
-from process.body.shape import BodyShape
-from process.body.skeleton import JOINT_INDEX
-from process.body.surface import CAPSULE_NAMES, capsules, signed_distance
+from mocaprig.process.body.shape import BodyShape
+from mocaprig.process.body.skeleton import JOINT_INDEX
+from mocaprig.process.body.surface import CAPSULE_NAMES, capsules, signed_distance
 from tests.process.body._body_helpers import random_poses
 
 SHAPE = BodyShape.from_height(1.75)

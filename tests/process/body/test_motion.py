@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from process.body.motion import Motion, blend_poses, concatenate
-from process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.motion import Motion, blend_poses, concatenate
+from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
 
 
 def _random_motion(rng: np.random.Generator, frames: int, rate_hz: float = 100.0) -> Motion:

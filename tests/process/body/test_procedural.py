@@ -5,17 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from process.body.kinematics import forward_kinematics, within_limits
-from process.body.motion import Motion
-from process.body.procedural import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import forward_kinematics, within_limits
+from mocaprig.process.body.motion import Motion
+from mocaprig.process.body.procedural import (
     PROCEDURAL_MOTIONS,
     floor_clearance_m,
     make_motion,
     session_motion,
 )
-from process.body.shape import BodyShape
-from process.body.skeleton import DOF_NAMES, JOINT_INDEX
+from mocaprig.process.body.shape import BodyShape
+from mocaprig.process.body.skeleton import DOF_NAMES, JOINT_INDEX
 
 SHAPE = BodyShape.from_height(1.75)
 RATE = 120.0

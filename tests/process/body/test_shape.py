@@ -7,17 +7,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from process.body.kinematics import forward_kinematics, neutral_pose
-from process.body.shape import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import forward_kinematics, neutral_pose
+from mocaprig.process.body.shape import (
     DRILLIS_CONTINI_FRACTIONS,
     VERTICAL_CHAIN,
     BodyShape,
     rest_joint_positions,
     rest_offsets,
 )
-from process.body.skeleton import JOINT_INDEX, JOINTS
-from process.body.surface import capsules
+from mocaprig.process.body.skeleton import JOINT_INDEX, JOINTS
+from mocaprig.process.body.surface import capsules
 
 
 def _standing_extent_m(shape: BodyShape) -> tuple[float, float, float]:

@@ -6,11 +6,11 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from acquire.errors import ValidationError
-from process.body.kinematics import forward_kinematics, neutral_pose, t_pose
-from process.body.shape import BodyShape
-from process.body.skeleton import JOINT_INDEX
-from process.body.surface import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.kinematics import forward_kinematics, neutral_pose, t_pose
+from mocaprig.process.body.shape import BodyShape
+from mocaprig.process.body.skeleton import JOINT_INDEX
+from mocaprig.process.body.surface import (
     CAPSULE_NAMES,
     Capsules,
     capsule_template,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from process.democap.config import DemocapConfig
+from mocaprig.process.democap.config import DemocapConfig
 
 
 @pytest.fixture

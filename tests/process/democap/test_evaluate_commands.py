@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from acquire.cli import main
-from process.democap import demo_figures
-from process.democap.checkpoint import DEFAULT_CHECKPOINT
-from process.democap.config import DemocapConfig
-from process.democap.dataset import make_pool
-from process.democap.evaluate import EVAL_JOINTS, SEGMENTS, evaluate, segment_quaternions
-from process.democap.infer import DemocapPredictor
-from process.democap.train import TrainOptions, train
-from process.metrics import quaternion_angle_deg
+from mocaprig.cli import main
+from mocaprig.process.democap import demo_figures
+from mocaprig.process.democap.checkpoint import DEFAULT_CHECKPOINT
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.dataset import make_pool
+from mocaprig.process.democap.evaluate import EVAL_JOINTS, SEGMENTS, evaluate, segment_quaternions
+from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.train import TrainOptions, train
+from mocaprig.process.metrics import quaternion_angle_deg
 
 needs_ckpt = pytest.mark.skipif(
     not DEFAULT_CHECKPOINT.is_file(), reason="the committed lite checkpoint is absent"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.errors import ValidationError
-from process.democap.geometry import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.democap.geometry import (
     back_view,
     fuse_views,
     normalise,

@@ -7,12 +7,12 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from acquire.errors import ValidationError
-from process.democap.checkpoint import Checkpoint
-from process.democap.config import DemocapConfig
-from process.democap.dataset import make_pool, make_sample
-from process.democap.infer import DemocapPredictor, ensemble_rotations
-from process.democap.model import build_network
+from mocaprig.errors import ValidationError
+from mocaprig.process.democap.checkpoint import Checkpoint
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.dataset import make_pool, make_sample
+from mocaprig.process.democap.infer import DemocapPredictor, ensemble_rotations
+from mocaprig.process.democap.model import build_network
 
 
 def _checkpoint(cfg: DemocapConfig) -> Checkpoint:

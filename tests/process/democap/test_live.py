@@ -18,13 +18,13 @@ import numpy.typing as npt
 import pytest
 import torch
 
-from acquire.errors import CalibrationError, ProcessingError, ValidationError
-from calib.calibration import Calibration, CameraCalibration
-from calib.markers import crop_volume, measure_frame, merge_views, to_world
-from process.democap.checkpoint import Checkpoint
-from process.democap.config import DemocapConfig
-from process.democap.infer import DemocapPredictor, Prediction
-from process.democap.live import (
+from mocaprig.calib.calibration import Calibration, CameraCalibration
+from mocaprig.calib.markers import crop_volume, measure_frame, merge_views, to_world
+from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
+from mocaprig.process.democap.checkpoint import Checkpoint
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.infer import DemocapPredictor, Prediction
+from mocaprig.process.democap.live import (
     LIVE_ROTATIONS,
     LiveCamera,
     LivePipeline,
@@ -32,8 +32,8 @@ from process.democap.live import (
     cameras_from_calibration,
     live_predictor,
 )
-from process.democap.model import DemocapNet
-from process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.process.democap.model import DemocapNet
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M
 
 F64 = npt.NDArray[np.float64]
 W, H = 240, 180
@@ -369,7 +369,7 @@ def test_errors_of_every_stage_propagate(
                 raise _Boom("measurement failed")
             return real(*args, **kwargs)
 
-        monkeypatch.setattr("process.democap.live.measure_frame", flaky)
+        monkeypatch.setattr("mocaprig.process.democap.live.measure_frame", flaky)
         with pytest.raises(_Boom, match="measurement failed"):
             pipe.process(sets[0])
         with pytest.raises(_Boom, match="measurement failed"):

@@ -9,9 +9,9 @@ from typing import Literal, cast
 import pytest
 import torch
 
-from acquire.errors import ValidationError
-from process.democap.config import CONFIGS, DemocapConfig, config_by_name
-from process.democap.model import (
+from mocaprig.errors import ValidationError
+from mocaprig.process.democap.config import CONFIGS, DemocapConfig, config_by_name
+from mocaprig.process.democap.model import (
     DemocapNet,
     com3d,
     democap_loss,

@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 import torch
 
-from acquire.cli import main
-from acquire.errors import ProcessingError, ValidationError
-from calib.calibration import Calibration, write_calibration
-from calib.vicon_calibration import calibrate_vicon
-from drivers_mock import simulate_session
-from drivers_mock.truth import Truth, democap_truth_at, read_truth
-from process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
-from process.democap import DemocapPredictor, evaluate
-from process.democap.replay import (
+from mocaprig.calib.calibration import Calibration, write_calibration
+from mocaprig.calib.vicon_calibration import calibrate_vicon
+from mocaprig.cli import main
+from mocaprig.drivers_mock import simulate_session
+from mocaprig.drivers_mock.truth import Truth, democap_truth_at, read_truth
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
+from mocaprig.process.democap import DemocapPredictor, evaluate
+from mocaprig.process.democap.replay import (
     CLOUD_TOPIC,
     JOINTS_TOPIC,
     MARKERS_TOPIC,

@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
-from acquire.errors import ValidationError
-from calib.markers import merge_views as replay_merge
-from process.body import BodyShape, MarkerSet, make_motion
-from process.democap.simdata import (
+from mocaprig.calib.markers import merge_views as replay_merge
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import BodyShape, MarkerSet, make_motion
+from mocaprig.process.democap.simdata import (
     BASELINE_M,
     DEPTH_NOISE_CLEAR,
     IMAGE_H,

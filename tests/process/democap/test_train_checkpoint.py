@@ -8,24 +8,24 @@ import numpy as np
 import pytest
 import torch
 
-from acquire.errors import ProcessingError, ValidationError
-from process.body import BodyShape, BvhClip, make_motion
-from process.democap.checkpoint import (
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body import BodyShape, BvhClip, make_motion
+from mocaprig.process.democap.checkpoint import (
     DEFAULT_CHECKPOINT,
     FORMAT_VERSION,
     load_checkpoint,
     save_checkpoint,
 )
-from process.democap.config import DemocapConfig
-from process.democap.dataset import (
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.dataset import (
     TRAIN_ACTIONS,
     make_batch,
     make_pool,
     make_sample,
     pool_from_bvh,
 )
-from process.democap.infer import DemocapPredictor
-from process.democap.train import TrainOptions, train
+from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.train import TrainOptions, train
 from tests.process.body._body_helpers import motion_as_bvh
 
 _OPTS = TrainOptions(epochs=2, seed=3, takes=2, threads=1)

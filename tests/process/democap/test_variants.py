@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 import torch
 
-from acquire.cli import main
-from acquire.errors import ProcessingError, ValidationError
-from process.democap.checkpoint import load_checkpoint
-from process.democap.commands import VARIANT_CHOICES
-from process.democap.config import CONFIGS, VARIANTS, DemocapConfig, Variant
-from process.democap.dataset import make_pool, make_sample
-from process.democap.evaluate import evaluate
-from process.democap.infer import DemocapPredictor, decode
-from process.democap.model import (
+from mocaprig.cli import main
+from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.democap.checkpoint import load_checkpoint
+from mocaprig.process.democap.commands import VARIANT_CHOICES
+from mocaprig.process.democap.config import CONFIGS, VARIANTS, DemocapConfig, Variant
+from mocaprig.process.democap.dataset import make_pool, make_sample
+from mocaprig.process.democap.evaluate import evaluate
+from mocaprig.process.democap.infer import DemocapPredictor, decode
+from mocaprig.process.democap.model import (
     CoordsOutput,
     DemocapNet,
     DemocapOutput,
@@ -32,8 +32,8 @@ from process.democap.model import (
     build_network,
     democap_loss,
 )
-from process.democap.replay import run_replay
-from process.democap.train import TrainOptions, train
+from mocaprig.process.democap.replay import run_replay
+from mocaprig.process.democap.train import TrainOptions, train
 
 _CLASSES = {
     "markers-to-pose": DemocapNet,

@@ -11,20 +11,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
-import time
 from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
-from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
+from mocaprig import __version__
+from mocaprig.errors import MocaprigError
+from mocaprig.json_values import to_jsonable
 
-from acquire import __version__
-from acquire.errors import MocaprigError
-
-__all__ = ["ProgressBar", "add_json_flag", "emit_json", "main", "to_jsonable"]
+__all__ = ["add_json_flag", "emit_json", "main"]
 
 _log = logging.getLogger(__name__)
 
@@ -40,23 +36,6 @@ Run `mocaprig COMMAND --help` for a command's options and examples.
 """
 
 
-def to_jsonable(obj: Any) -> Any:
-    """Turn numpy scalars/arrays, paths and NaN into plain JSON values (NaN -> null)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def emit_json(obj: Any, *, stream: TextIO | None = None) -> None:
     """Print ``obj`` as one JSON object on one line of stdout."""
     out = sys.stdout if stream is None else stream
@@ -69,38 +48,6 @@ def add_json_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--json", action="store_true", help="print one JSON object on stdout instead of text"
     )
-
-
-class ProgressBar:
-    """A progress callback ``(done, total)`` that draws on stderr.
-
-    It redraws at most every 0.2 s and only when stderr is a terminal, unless ``force`` is set,
-    so logs and CI output stay readable.
-    """
-
-    def __init__(self, label: str, *, stream: TextIO | None = None, force: bool = False) -> None:
-        self._label = label
-        self._stream = sys.stderr if stream is None else stream
-        self._enabled = force or self._stream.isatty()
-        self._last = 0.0
-        self._t0 = time.monotonic()
-
-    def __call__(self, done: int, total: int) -> None:
-        if not self._enabled:
-            return
-        now = time.monotonic()
-        if done < total and now - self._last < 0.2:
-            return
-        self._last = now
-        frac = done / total if total > 0 else 1.0
-        width = 30
-        bar = "#" * round(frac * width)
-        self._stream.write(
-            f"\r{self._label} [{bar:<{width}}] {done}/{total} {now - self._t0:5.1f}s"
-        )
-        if done >= total:
-            self._stream.write("\n")
-        self._stream.flush()
 
 
 def _build_parser() -> argparse.ArgumentParser:

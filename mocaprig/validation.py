@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from acquire.errors import ValidationError
+from mocaprig.errors import ValidationError
 
 __all__ = ["check_finite", "check_positive", "check_range", "check_shape"]
 

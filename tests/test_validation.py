@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.check import check_finite, check_positive, check_range, check_shape
-from acquire.errors import MocaprigError, ValidationError
+from mocaprig.errors import MocaprigError, ValidationError
+from mocaprig.validation import check_finite, check_positive, check_range, check_shape
 
 
 def test_check_shape_accepts_named_and_ellipsis_patterns() -> None:

@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from acquire.cli import ProgressBar, emit_json, main, to_jsonable
+from mocaprig.cli import emit_json, main
+from mocaprig.json_values import to_jsonable
+from mocaprig.progress import ProgressBar
 
 
 def test_help_lists_the_commands_and_examples(capsys: pytest.CaptureFixture[str]) -> None:
