@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from mocaprig.cli import add_json_flag, emit_json
 from mocaprig.errors import DeviceError, RecordingError
+from mocaprig.progress import StatusLine
 
 if TYPE_CHECKING:
     from mocaprig.acquire.davis240c import Davis240C
@@ -459,33 +460,29 @@ def _count(totals: dict[str, int], pkt: DavisPacket) -> None:
 
 
 class _StatusLine:
-    """A one-line live status on stderr (only on a terminal), redrawn every 0.5 s."""
+    """``davis stream``'s live figures on the :class:`~mocaprig.progress.StatusLine`."""
 
     def __init__(self) -> None:
-        self._enabled = sys.stderr.isatty()
-        self._last = 0.0
+        self._line = StatusLine()
         self._prev: tuple[float, int, int] = (0.0, 0, 0)
 
     def __call__(self, totals: dict[str, int], cam: Davis240C, elapsed: float) -> None:
-        if not self._enabled or elapsed - self._last < 0.5:
+        if not self._line.due():
             return
         t_prev, ev_prev, fr_prev = self._prev
         dt = max(elapsed - t_prev, 1e-9)
         ev_rate = (totals["events"] - ev_prev) / dt
         fr_rate = (totals["frames"] - fr_prev) / dt
         s = cam.stats()
-        sys.stderr.write(
-            f"\r{elapsed:6.1f} s  {ev_rate / 1e3:8.1f} k ev/s  {fr_rate:5.1f} fps  "
+        self._line.show(
+            f"{elapsed:6.1f} s  {ev_rate / 1e3:8.1f} k ev/s  {fr_rate:5.1f} fps  "
             f"drops: {s.packets_dropped} pkts, {s.raw_bytes_dropped} raw B, "
-            f"{s.decode.frames_dropped} frames   "
+            f"{s.decode.frames_dropped} frames"
         )
-        sys.stderr.flush()
-        self._last = elapsed
         self._prev = (elapsed, totals["events"], totals["frames"])
 
     def done(self) -> None:
-        if self._enabled and self._last:
-            sys.stderr.write("\n")
+        self._line.done()
 
 
 # -- devices -------------------------------------------------------------------------------------

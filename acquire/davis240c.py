@@ -1,8 +1,9 @@
-"""DAVIS240C event camera over libusb (pyusb): discovery, configuration and streaming.
+"""The DAVIS240C event camera over libusb (pyusb): open, configure, start, stop, packets.
 
-The protocol is in ``docs/davis240c-usb.md`` (shared docs): vendor request 0xBF reads/writes
-one 32-bit register (big-endian), 0xC2 writes several at once; data arrive on bulk EP 0x82 as
-16-bit words decoded by :mod:`mocaprig.acquire.davis240c_decode`.
+:class:`Davis240C` is one opened camera. The protocol is in ``docs/davis240c-usb.md`` (shared
+docs): vendor request 0xBF reads/writes one 32-bit register (big-endian), 0xC2 writes several at
+once; data arrive on bulk EP 0x82 as 16-bit words decoded by
+:mod:`mocaprig.acquire.davis240c_decode`.
 
 Usage::
 
@@ -11,31 +12,34 @@ Usage::
         for packet in cam.packets(timeout_s=1.0):
             handle(packet.events, packet.frames, packet.imu, packet.specials)
 
-Streaming uses two threads: a *reader* that only keeps EP 0x82 drained (one synchronous
-``read_size``-byte bulk read at a time, short timeout) and hands raw chunks over, and a
-*decoder* that turns them into :class:`~mocaprig.acquire.davis240c_decode.DavisPacket` objects in a
-bounded queue. A slow consumer never blocks either thread: packets that do not fit are dropped
-and counted by kind (:class:`StreamStats`); their special events (timestamp resets, triggers)
-are kept and delivered with the next packet. A USB error other than a timeout (unplugged cable)
-stops the stream cleanly: everything already received is decoded and delivered, then
-:meth:`Davis240C.packets` raises :class:`~mocaprig.errors.DeviceError`.
+The driver is split along its seams; this module re-exports the public names of the others, so
+``from mocaprig.acquire.davis240c import X`` works for all of them:
+
+- :mod:`mocaprig.acquire.davis240c_libusb`: USB ids, endpoint, vendor requests, and which
+  :class:`~mocaprig.errors.DeviceError` subclass a libusb error becomes;
+- :mod:`mocaprig.acquire.davis240c_discovery`: :func:`find_davis`, :class:`DavisUsbDevice`,
+  :func:`load_mock_backend`, the udev rule (:data:`UDEV_RULE`);
+- :mod:`mocaprig.acquire.davis240c_reader`: the reader and decoder threads, their bounded queues
+  and drop counting (:class:`StreamStats`).
+
+Failures are :class:`~mocaprig.errors.DeviceError` subclasses that keep the libusb code
+(``backend_code``) and errno (``backend_errno``): :class:`~mocaprig.errors.DeviceNotFoundError`
+(no camera, wrong serial), :class:`~mocaprig.errors.DevicePermissionError` (the udev rule),
+:class:`~mocaprig.errors.DeviceBusyError` (another process holds it),
+:class:`~mocaprig.errors.DeviceTimeoutError` (a control transfer or the stream stalled) and
+:class:`~mocaprig.errors.DeviceDisconnectedError` (unplugged; while streaming it is raised by
+:meth:`Davis240C.packets` after everything received before was delivered).
 """
 
 from __future__ import annotations
 
-import collections
-import errno
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
-from importlib.metadata import entry_points
-from importlib.resources import files
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, BinaryIO, Final, Self
-
-import numpy as np
 
 from mocaprig.acquire.davis240c_config import (
     ApsParam,
@@ -52,9 +56,42 @@ from mocaprig.acquire.davis240c_config import (
     UsbParam,
     default_config_writes,
 )
-from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket, DecodeStats
-from mocaprig.acquire.events import empty_events
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket
+from mocaprig.acquire.davis240c_discovery import (
+    UDEV_HINT,
+    UDEV_RULE,
+    DavisUsbDevice,
+    candidate_devices,
+    describe_bus,
+    find_davis,
+    load_mock_backend,
+    read_serial,
+)
+from mocaprig.acquire.davis240c_libusb import (
+    CTRL_TIMEOUT_MS,
+    DATA_ENDPOINT,
+    PRODUCT_ID_FX2,
+    PRODUCT_ID_FX3,
+    VENDOR_ID,
+    VR_FPGA_CONFIG,
+    VR_FPGA_CONFIG_MULTIPLE,
+    ctrl_read,
+    device_error,
+    is_busy,
+    is_no_device,
+    is_permission,
+    usb_module,
+)
+from mocaprig.acquire.davis240c_reader import DavisStream, StreamStats
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 
 __all__ = [
     "DATA_ENDPOINT",
@@ -77,193 +114,20 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-VENDOR_ID: Final = 0x152A
-PRODUCT_ID_FX2: Final = 0x841B  # DAVIS240A/B/C cameras
-PRODUCT_ID_FX3: Final = 0x841A  # FX3 boards (DAVIS240C chip on an FX3 dev kit: same words)
 REQUIRED_FIRMWARE_FX2: Final = 4
 REQUIRED_FIRMWARE_FX3: Final = 6
 REQUIRED_LOGIC_VERSION: Final = 18
 REQUIRED_LOGIC_PATCH: Final = 1
-DATA_ENDPOINT: Final = 0x82
-VR_FPGA_CONFIG: Final = 0xBF
-VR_FPGA_CONFIG_MULTIPLE: Final = 0xC2
 _MAX_MULTIPLE: Final = 85  # entries per 0xC2 request (510 bytes; note §2)
-_CTRL_TIMEOUT_MS: Final = 1000
 _CHIP_ID_DAVIS240C: Final = 2
-_MAX_CARRIED_SPECIALS: Final = 65536  # specials kept from dropped packets
 
-#: The udev rule shipped with the package (install it to use the camera without root).
-UDEV_RULE = files("acquire") / "data" / "99-mocaprig-davis.rules"
-
-_UDEV_HINT = (
-    f"install the udev rule: sudo cp {UDEV_RULE} /etc/udev/rules.d/ && "
-    "sudo udevadm control --reload-rules && sudo udevadm trigger, then unplug and replug "
-    "the camera"
-)
 _FLASH_HINT = (
     "reflash it with iniVation's Flashy tool (part of DV) to FX2 firmware "
     f"{REQUIRED_FIRMWARE_FX2} / logic {REQUIRED_LOGIC_VERSION} (patch >= {REQUIRED_LOGIC_PATCH})"
 )
 
-# libusb error codes (pyusb ``USBError.backend_error_code``).
-_LIBUSB_ERROR_ACCESS = -3
-_LIBUSB_ERROR_NO_DEVICE = -4
-_LIBUSB_ERROR_BUSY = -6
 
-
-def load_mock_backend(**kwargs: Any) -> Any:
-    """The DAVIS240C mock ``usb.backend.IBackend`` from the ``mocaprig.mocks`` entry point.
-
-    ``kwargs`` go to the factory. acquire/ never imports drivers_mock/ itself.
-
-    Raises:
-        DeviceError: no mock is registered (the package is not installed with its mocks).
-    """
-    try:
-        ep = entry_points(group="mocaprig.mocks")["davis240c"]
-    except KeyError as err:
-        msg = "no 'davis240c' mock in the mocaprig.mocks entry points; run `pip install -e .`"
-        raise DeviceError(msg) from err
-    try:
-        factory: Callable[..., Any] = ep.load()
-    except ImportError as err:
-        msg = f"the DAVIS240C mock ({ep.value}) cannot be imported: {err}"
-        raise DeviceError(msg) from err
-    return factory(**kwargs)
-
-
-# -- discovery ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class DavisUsbDevice:
-    """A DAVIS camera seen on the bus (found without claiming it).
-
-    Attributes:
-        bus: USB bus number.
-        address: USB device address.
-        product_id: 0x841B (FX2) or 0x841A (FX3).
-        serial: Serial-number string, or None when it could not be read.
-        firmware_version: ``bcdDevice & 0xFF``.
-        logic_version: SYSINFO LOGIC_VERSION, or None when unreadable.
-        logic_patch: SYSINFO LOGIC_PATCH, or None.
-        error: Why something could not be read (e.g. permissions), or None.
-    """
-
-    bus: int
-    address: int
-    product_id: int
-    serial: str | None
-    firmware_version: int
-    logic_version: int | None = None
-    logic_patch: int | None = None
-    error: str | None = None
-
-    @property
-    def kind(self) -> str:
-        """'DAVIS FX2' or 'DAVIS FX3'."""
-        return "DAVIS FX2" if self.product_id == PRODUCT_ID_FX2 else "DAVIS FX3"
-
-
-def _usb() -> Any:
-    import usb.core  # lazy: keep `mocaprig --help` fast
-    import usb.util
-
-    return usb
-
-
-def _error_code(err: BaseException) -> tuple[int | None, int | None]:
-    return getattr(err, "errno", None), getattr(err, "backend_error_code", None)
-
-
-def _is_permission(err: BaseException) -> bool:
-    en, code = _error_code(err)
-    return en == errno.EACCES or code == _LIBUSB_ERROR_ACCESS
-
-
-def _is_busy(err: BaseException) -> bool:
-    en, code = _error_code(err)
-    return en == errno.EBUSY or code == _LIBUSB_ERROR_BUSY
-
-
-def _is_timeout(err: BaseException) -> bool:
-    usb = _usb()
-    en, _ = _error_code(err)
-    return isinstance(err, usb.core.USBTimeoutError) or en == errno.ETIMEDOUT
-
-
-def _read_serial(dev: Any) -> str:
-    usb = _usb()
-    if not dev.iSerialNumber:
-        # libcaer 3.3.10+: a session-local name when the descriptor has no serial.
-        return f"TMP{(int(dev.bus or 0) << 8) | int(dev.address or 0):05d}"
-    serial = usb.util.get_string(dev, dev.iSerialNumber)
-    return str(serial)
-
-
-def _ctrl_read(dev: Any, module: int, param: int) -> int:
-    data = dev.ctrl_transfer(0xC0, VR_FPGA_CONFIG, module, param, 4, _CTRL_TIMEOUT_MS)
-    if len(data) != 4:
-        msg = f"register ({module}, {param}) read returned {len(data)} bytes instead of 4"
-        raise DeviceError(msg)
-    return int.from_bytes(bytes(data), "big")
-
-
-def _candidates(backend: Any) -> list[Any]:
-    usb = _usb()
-    found = usb.core.find(find_all=True, backend=backend, idVendor=VENDOR_ID)
-    devs = [d for d in found if d.idProduct in (PRODUCT_ID_FX2, PRODUCT_ID_FX3)]
-    return sorted(devs, key=lambda d: (d.idProduct != PRODUCT_ID_FX2, d.bus or 0, d.address or 0))
-
-
-def find_davis(*, backend: Any = None) -> list[DavisUsbDevice]:
-    """Every DAVIS camera (VID 0x152A, PID 0x841B/0x841A) on the bus, FX2 first.
-
-    The interface is not claimed, so a camera in use by another process is still listed.
-    Unreadable fields are None and ``error`` says why (usually permissions: the udev rule).
-    """
-    usb = _usb()
-    out = []
-    for dev in _candidates(backend):
-        serial = logic = patch = None
-        error = None
-        try:
-            serial = _read_serial(dev)
-            logic = _ctrl_read(dev, Module.SYSINFO, SysInfoParam.LOGIC_VERSION)
-            patch = _ctrl_read(dev, Module.SYSINFO, SysInfoParam.LOGIC_PATCH)
-        except (usb.core.USBError, ValueError, DeviceError) as err:
-            error = "permission denied; " + _UDEV_HINT if _is_permission(err) else str(err)
-        finally:
-            usb.util.dispose_resources(dev)
-        out.append(
-            DavisUsbDevice(
-                bus=int(dev.bus or 0),
-                address=int(dev.address or 0),
-                product_id=int(dev.idProduct),
-                serial=serial,
-                firmware_version=int(dev.bcdDevice) & 0xFF,
-                logic_version=logic,
-                logic_patch=patch,
-                error=error,
-            )
-        )
-    return out
-
-
-def _describe_bus(backend: Any) -> str:
-    usb = _usb()
-    try:
-        devs = list(usb.core.find(find_all=True, backend=backend))
-    except usb.core.USBError as err:  # pragma: no cover - enumeration itself failed
-        return f"(cannot enumerate USB devices: {err})"
-    if not devs:
-        return "no USB devices at all"
-    return ", ".join(
-        f"{d.idVendor:04x}:{d.idProduct:04x} (bus {d.bus}, address {d.address})" for d in devs
-    )
-
-
-# -- device information and statistics ---------------------------------------------------------
+# -- device information ------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True)
@@ -319,51 +183,6 @@ class DavisInfo:
         return out
 
 
-@dataclass(frozen=True, slots=True)
-class StreamStats:
-    """A snapshot of the streaming counters since :meth:`Davis240C.start`.
-
-    Attributes:
-        running: The reader is running.
-        reads: Completed bulk reads.
-        bytes_read: Bytes received from EP 0x82.
-        read_timeouts: Bulk reads that returned nothing within the read timeout.
-        raw_bytes_dropped: Raw bytes dropped because the decoder fell behind.
-        bytes_discarded_before_reset: Bytes thrown away before our own timestamp reset.
-        packets_delivered: Packets handed to the consumer queue.
-        packets_dropped: Packets dropped because the consumer queue was full.
-        events_dropped: Polarity events in dropped packets.
-        frames_dropped: APS frames in dropped packets.
-        imu_dropped: IMU samples in dropped packets.
-        specials_dropped: Special events dropped (only beyond the carry-over limit).
-        decode: The decoder's counters (malformed/skipped words, dropped frames...).
-        error: The error that ended the stream, or None.
-    """
-
-    running: bool = False
-    reads: int = 0
-    bytes_read: int = 0
-    read_timeouts: int = 0
-    raw_bytes_dropped: int = 0
-    bytes_discarded_before_reset: int = 0
-    packets_delivered: int = 0
-    packets_dropped: int = 0
-    events_dropped: int = 0
-    frames_dropped: int = 0
-    imu_dropped: int = 0
-    specials_dropped: int = 0
-    decode: DecodeStats = field(default_factory=DecodeStats)
-    error: str | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain-JSON view."""
-        out: dict[str, Any] = {
-            k: getattr(self, k) for k in self.__dataclass_fields__ if k != "decode"
-        }
-        out["decode"] = self.decode.as_dict()
-        return out
-
-
 # -- the device --------------------------------------------------------------------------------
 
 _STOP_SEQUENCE: Final[tuple[tuple[int, int], ...]] = (
@@ -409,8 +228,11 @@ class Davis240C:
             timestamp reset on), written by the decoder thread; for ``mocaprig davis decode``.
 
     Raises:
-        DeviceError: not found (lists what is on the bus), permission denied (how to install
-            the udev rule), busy, wrong firmware/logic (how to reflash), or not a DAVIS240C.
+        DeviceNotFoundError: no camera (lists what is on the bus), or none with ``serial``.
+        DevicePermissionError: the user may not open it (how to install the udev rule).
+        DeviceBusyError: another process holds it.
+        DeviceError: wrong firmware/logic (how to reflash), or another USB failure (then the
+            subclass its libusb code stands for, e.g. :class:`DeviceDisconnectedError`).
     """
 
     def __init__(
@@ -451,7 +273,7 @@ class Davis240C:
         self._dev: Any = None
         self._claimed = False
         self._lock = threading.Lock()  # serialises control transfers
-        self._stream: _Stream | None = None
+        self._stream: DavisStream | None = None
         self._dev = self._open(serial=serial, bus=bus, address=address)
         try:
             self._info = self._read_info()
@@ -486,7 +308,7 @@ class Davis240C:
         try:
             self.stop()
         finally:
-            usb = _usb()
+            usb = usb_module()
             dev, self._dev = self._dev, None
             try:
                 if self._claimed:
@@ -502,9 +324,9 @@ class Davis240C:
         return self._dev is None
 
     def _open(self, *, serial: str | None, bus: int | None, address: int | None) -> Any:
-        usb = _usb()
+        usb = usb_module()
         try:
-            devs = _candidates(self._backend)
+            devs = candidate_devices(self._backend)
         except usb.core.NoBackendError as err:
             msg = "no libusb backend available; install libusb-1.0 (apt install libusb-1.0-0)"
             raise DeviceError(msg) from err
@@ -517,21 +339,23 @@ class Davis240C:
             msg = (
                 "no DAVIS camera found (USB 152a:841b or 152a:841a"
                 + (f" at bus {bus} address {address}" if bus or address else "")
-                + f"); on the bus: {_describe_bus(self._backend)}. Check the cable and power "
+                + f"); on the bus: {describe_bus(self._backend)}. Check the cable and power "
                 "(`lsusb` should list 152a:841b)"
             )
-            raise DeviceError(msg)
+            raise DeviceNotFoundError(msg)
         seen: list[str] = []
         for dev in devs:
             where = f"bus {dev.bus} address {dev.address}"
             try:
-                sn = _read_serial(dev)
+                sn = read_serial(dev)
             except (usb.core.USBError, ValueError) as err:
-                if isinstance(err, ValueError) or _is_permission(err):
-                    msg = f"DAVIS camera at {where}: permission denied; {_UDEV_HINT}"
-                    raise DeviceError(msg) from err
+                # pyusb raises ValueError ("The device has no langid") when it may not read
+                # the string descriptors: a permission problem too.
+                if isinstance(err, ValueError) or is_permission(err):
+                    msg = f"DAVIS camera at {where}: permission denied; {UDEV_HINT}"
+                    raise DevicePermissionError.from_cause(msg, err) from err
                 msg = f"DAVIS camera at {where}: cannot read serial: {err}"
-                raise DeviceError(msg) from err
+                raise device_error(msg, err) from err
             seen.append(sn)
             if serial is None or sn == serial:
                 if serial is None and len(devs) > 1:
@@ -544,10 +368,10 @@ class Davis240C:
             f"no DAVIS camera with serial {serial!r}; found serial(s) {', '.join(seen)}. "
             "Run `mocaprig devices` to list them"
         )
-        raise DeviceError(msg)
+        raise DeviceNotFoundError(msg)
 
     def _claim(self, dev: Any, where: str) -> None:
-        usb = _usb()
+        usb = usb_module()
         name = f"DAVIS240C {self._serial} at {where}"
         try:
             try:
@@ -561,16 +385,18 @@ class Davis240C:
             self._claimed = True
         except usb.core.USBError as err:
             usb.util.dispose_resources(dev)
-            if _is_permission(err):
-                msg = f"{name}: permission denied; {_UDEV_HINT}"
-            elif _is_busy(err):
+            cls: type[DeviceError] | None = None  # by the libusb code
+            if is_permission(err):
+                cls, msg = DevicePermissionError, f"{name}: permission denied; {UDEV_HINT}"
+            elif is_busy(err):
+                cls = DeviceBusyError
                 msg = (
                     f"{name} is busy: another process holds it (a running mocaprig, DV, jAER "
                     "or a ROS driver); close that program and try again"
                 )
             else:
                 msg = f"{name}: cannot claim interface 0: {err}"
-            raise DeviceError(msg) from err
+            raise device_error(msg, err, cls) from err
         fw = int(dev.bcdDevice) & 0xFF
         required = (
             REQUIRED_FIRMWARE_FX2 if dev.idProduct == PRODUCT_ID_FX2 else (REQUIRED_FIRMWARE_FX3)
@@ -593,10 +419,10 @@ class Davis240C:
     def config_get(self, module: int, param: int) -> int:
         """Read one 32-bit register (0xBF IN)."""
         dev = self._require_open()
-        usb = _usb()
+        usb = usb_module()
         try:
             with self._lock:
-                return _ctrl_read(dev, module, param)
+                return ctrl_read(dev, module, param)
         except usb.core.USBError as err:
             what = f"reading register ({module}, {param})"
             raise self._usb_error(what, err) from err
@@ -615,7 +441,7 @@ class Davis240C:
         """Write one 32-bit register (0xBF OUT, value big-endian)."""
         wr = RegisterWrite(int(module), int(param), int(value))
         dev = self._require_open()
-        usb = _usb()
+        usb = usb_module()
         try:
             with self._lock:
                 dev.ctrl_transfer(
@@ -624,7 +450,7 @@ class Davis240C:
                     wr.module,
                     wr.param,
                     wr.value.to_bytes(4, "big"),
-                    _CTRL_TIMEOUT_MS,
+                    CTRL_TIMEOUT_MS,
                 )
         except usb.core.USBError as err:
             what = f"writing register ({module}, {param})"
@@ -633,7 +459,7 @@ class Davis240C:
     def config_set_many(self, writes: Sequence[RegisterWrite]) -> None:
         """Write several registers in order with 0xC2 (atomic batches of up to 85)."""
         dev = self._require_open()
-        usb = _usb()
+        usb = usb_module()
         for i in range(0, len(writes), _MAX_MULTIPLE):
             batch = writes[i : i + _MAX_MULTIPLE]
             payload = b"".join(
@@ -642,20 +468,19 @@ class Davis240C:
             try:
                 with self._lock:
                     dev.ctrl_transfer(
-                        0x40, VR_FPGA_CONFIG_MULTIPLE, len(batch), 0, payload, _CTRL_TIMEOUT_MS
+                        0x40, VR_FPGA_CONFIG_MULTIPLE, len(batch), 0, payload, CTRL_TIMEOUT_MS
                     )
             except usb.core.USBError as err:
                 what = f"writing {len(batch)} registers"
                 raise self._usb_error(what, err) from err
 
     def _usb_error(self, what: str, err: BaseException) -> DeviceError:
-        _, code = _error_code(err)
-        en = getattr(err, "errno", None)
-        if code == _LIBUSB_ERROR_NO_DEVICE or en == errno.ENODEV:
-            return DeviceError(
-                f"DAVIS240C {self._serial}: disconnected while {what}; replug it and reopen"
-            )
-        return DeviceError(f"DAVIS240C {self._serial}: USB error while {what}: {err}")
+        """The :class:`DeviceError` subclass for a failed transfer, keeping the libusb codes."""
+        if is_no_device(err):
+            msg = f"DAVIS240C {self._serial}: disconnected while {what}; replug it and reopen"
+            return device_error(msg, err, DeviceDisconnectedError)
+        msg = f"DAVIS240C {self._serial}: USB error while {what}: {err}"
+        return device_error(msg, err)
 
     # -- information ----------------------------------------------------------------------------
 
@@ -790,7 +615,7 @@ class Davis240C:
                 msg = f"DAVIS240C {self._serial} is already streaming; stop() it first"
                 raise DeviceError(msg)
             self._stream.join()
-        usb = _usb()
+        usb = usb_module()
         drain, settle, mux = self._delays
         for module, param in _STOP_SEQUENCE:
             self.config_set(module, param, 0)
@@ -803,7 +628,7 @@ class Davis240C:
             raise self._usb_error(what, err) from err
         flip = self._info.imu_orientation
         decoder = DavisDecoder(imu_flip=(bool(flip & 4), bool(flip & 2), bool(flip & 1)))
-        self._stream = _Stream(
+        self._stream = DavisStream(
             dev,
             decoder,
             read_size=self._read_size,
@@ -855,7 +680,8 @@ class Davis240C:
         """The next packet, or None if none came within ``timeout_s`` or the stream ended.
 
         Raises:
-            DeviceError: the stream ended with a USB error (after every packet was taken).
+            DeviceDisconnectedError: the camera was unplugged (after every packet was taken).
+            DeviceError: the stream ended on another USB error (after every packet was taken).
         """
         stream = self._require_stream()
         return stream.get(timeout_s)
@@ -867,8 +693,10 @@ class Davis240C:
         wrap word every 32.768 ms), so ``timeout_s`` without any packet means a stall.
 
         Raises:
-            DeviceError: the camera was disconnected or failed (after delivering everything
-                received before), or no data arrived for ``timeout_s``.
+            DeviceDisconnectedError: the camera was unplugged (after delivering everything
+                received before).
+            DeviceTimeoutError: no data arrived for ``timeout_s``.
+            DeviceError: the stream ended on another USB error.
         """
         stream = self._require_stream()
         while True:
@@ -883,271 +711,14 @@ class Davis240C:
                 "camera sends a wrap word every 32.768 ms: the device or its USB link stalled; "
                 "stop(), replug the camera and start again"
             )
-            raise DeviceError(msg)
+            raise DeviceTimeoutError(msg)
 
     def stats(self) -> StreamStats:
         """Streaming counters (all zero before the first :meth:`start`)."""
         return StreamStats() if self._stream is None else self._stream.stats()
 
-    def _require_stream(self) -> _Stream:
+    def _require_stream(self) -> DavisStream:
         if self._stream is None:
             msg = f"DAVIS240C {self._serial} is not streaming; call start() first"
             raise DeviceError(msg)
         return self._stream
-
-
-class _Stream:
-    """Reader + decoder threads and the two hand-off queues of one streaming session."""
-
-    def __init__(
-        self,
-        dev: Any,
-        decoder: DavisDecoder,
-        *,
-        read_size: int,
-        read_timeout_ms: int,
-        queue_packets: int,
-        queue_bytes: int,
-        raw_queue_bytes: int,
-        discard_until_reset: bool,
-        name: str,
-        raw_sink: BinaryIO | None,
-    ) -> None:
-        self._dev = dev
-        self._raw_sink = raw_sink
-        self._decoder = decoder
-        self._read_size = read_size
-        self._read_timeout_ms = read_timeout_ms
-        self._queue_packets = queue_packets
-        self._queue_bytes = queue_bytes
-        self._out_bytes = 0
-        self._raw_limit = raw_queue_bytes
-        self._discard = discard_until_reset
-        self._discard_carry = b""
-        self._name = name
-        self._stop = threading.Event()
-        self._raw: collections.deque[tuple[int, bytes]] = collections.deque()
-        self._raw_bytes = 0
-        self._raw_cond = threading.Condition()
-        self._reader_done = False
-        self._out: collections.deque[DavisPacket] = collections.deque()
-        self._out_cond = threading.Condition()
-        self._decoder_done = False
-        self._carry_specials: list[Any] = []
-        self.error: BaseException | None = None
-        self._c = dict.fromkeys(
-            (
-                "reads",
-                "bytes_read",
-                "read_timeouts",
-                "raw_bytes_dropped",
-                "bytes_discarded_before_reset",
-                "packets_delivered",
-                "packets_dropped",
-                "events_dropped",
-                "frames_dropped",
-                "imu_dropped",
-                "specials_dropped",
-            ),
-            0,
-        )
-        self._reader = threading.Thread(target=self._read_loop, name=f"davis-{name}-reader")
-        self._decoder_thread = threading.Thread(
-            target=self._decode_loop, name=f"davis-{name}-decoder"
-        )
-        self._reader.daemon = True
-        self._decoder_thread.daemon = True
-
-    def start(self) -> None:
-        self._reader.start()
-        self._decoder_thread.start()
-
-    def reader_alive(self) -> bool:
-        return self._reader.is_alive()
-
-    def request_stop(self) -> None:
-        self._stop.set()
-
-    def join(self) -> None:
-        self._stop.set()
-        self._reader.join()
-        self._decoder_thread.join()
-
-    def finished(self) -> bool:
-        with self._out_cond:
-            return self._decoder_done and not self._out
-
-    # -- reader thread --------------------------------------------------------------------------
-
-    def _read_loop(self) -> None:
-        usb = _usb()
-        try:
-            while not self._stop.is_set():
-                t_call = time.monotonic()
-                try:
-                    data = self._dev.read(DATA_ENDPOINT, self._read_size, self._read_timeout_ms)
-                except usb.core.USBError as err:
-                    if _is_timeout(err):
-                        self._c["read_timeouts"] += 1
-                        # A backend that reports a timeout at once (a mock, a device with the
-                        # mux off) must not make this thread spin.
-                        if time.monotonic() - t_call < self._read_timeout_ms / 2000:
-                            time.sleep(0.002)
-                        continue
-                    self.error = err
-                    _log.error("DAVIS240C %s: bulk read failed, stopping: %s", self._name, err)
-                    break
-                t_ns = time.time_ns()
-                chunk = bytes(data)
-                self._c["reads"] += 1
-                self._c["bytes_read"] += len(chunk)
-                if not chunk:
-                    continue
-                with self._raw_cond:
-                    if self._raw_bytes + len(chunk) > self._raw_limit:
-                        self._c["raw_bytes_dropped"] += len(chunk)
-                        self._raw.append((t_ns, b""))  # a gap marker for the decoder
-                    else:
-                        self._raw.append((t_ns, chunk))
-                        self._raw_bytes += len(chunk)
-                    self._raw_cond.notify()
-        except Exception as err:  # pragma: no cover - a bug or a backend misbehaving
-            self.error = err
-            _log.exception("DAVIS240C %s: reader thread crashed", self._name)
-        finally:
-            with self._raw_cond:
-                self._reader_done = True
-                self._raw_cond.notify()
-
-    # -- decoder thread -------------------------------------------------------------------------
-
-    def _decode_loop(self) -> None:
-        try:
-            while True:
-                with self._raw_cond:
-                    while not self._raw and not self._reader_done:
-                        self._raw_cond.wait()
-                    if not self._raw:
-                        break
-                    t_ns, chunk = self._raw.popleft()
-                    self._raw_bytes -= len(chunk)
-                if not chunk:
-                    self._decoder.decode_gap()
-                    continue
-                if self._discard:
-                    chunk = self._skip_until_reset(chunk)
-                    if not chunk:  # still before the reset: show the consumer we are alive
-                        self._deliver(DavisPacket(events=empty_events(), host_time_ns=t_ns))
-                        continue
-                if self._raw_sink is not None:
-                    self._raw_sink.write(chunk)
-                pkt = self._decoder.decode(chunk)
-                self._deliver(
-                    DavisPacket(
-                        events=pkt.events,
-                        frames=pkt.frames,
-                        imu=pkt.imu,
-                        specials=pkt.specials,
-                        host_time_ns=t_ns,
-                    )
-                )
-        except Exception as err:  # pragma: no cover - a decoder bug must not hang consumers
-            self.error = self.error or err
-            _log.exception("DAVIS240C %s: decoder thread crashed", self._name)
-        finally:
-            with self._out_cond:
-                self._decoder_done = True
-                self._out_cond.notify_all()
-
-    def _skip_until_reset(self, chunk: bytes) -> bytes:
-        data = self._discard_carry + chunk
-        even = len(data) - len(data) % 2
-        words = np.frombuffer(data[:even], dtype="<u2")
-        hit = np.flatnonzero(words == 0x0001)
-        if hit.size == 0:
-            self._discard_carry = data[even:]
-            self._c["bytes_discarded_before_reset"] += even
-            return b""
-        self._discard = False
-        start = 2 * int(hit[0])
-        self._c["bytes_discarded_before_reset"] += start
-        return data[start:]
-
-    def _deliver(self, pkt: DavisPacket) -> None:
-        with self._out_cond:
-            if self._carry_specials:
-                merged = np.concatenate([*self._carry_specials, pkt.specials])
-                pkt = DavisPacket(
-                    events=pkt.events,
-                    frames=pkt.frames,
-                    imu=pkt.imu,
-                    specials=merged,
-                    host_time_ns=pkt.host_time_ns,
-                )
-                self._carry_specials = []
-            size = _payload_bytes(pkt)
-            full = len(self._out) >= self._queue_packets
-            if full or (self._out and self._out_bytes + size > self._queue_bytes):
-                c = self._c
-                c["packets_dropped"] += 1
-                c["events_dropped"] += int(pkt.events.size)
-                c["frames_dropped"] += len(pkt.frames)
-                c["imu_dropped"] += int(pkt.imu.size)
-                if pkt.specials.size:
-                    carried = sum(int(s.size) for s in self._carry_specials)
-                    if carried + pkt.specials.size <= _MAX_CARRIED_SPECIALS:
-                        self._carry_specials.append(pkt.specials)
-                    else:
-                        c["specials_dropped"] += int(pkt.specials.size)
-                return
-            self._out.append(pkt)
-            self._out_bytes += size
-            self._c["packets_delivered"] += 1
-            self._out_cond.notify()
-
-    # -- consumer side --------------------------------------------------------------------------
-
-    def get(self, timeout_s: float | None) -> DavisPacket | None:
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        with self._out_cond:
-            while not self._out and not self._decoder_done:
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    return None
-                self._out_cond.wait(remaining)
-            if self._out:
-                pkt = self._out.popleft()
-                self._out_bytes -= _payload_bytes(pkt)
-                return pkt
-        if self.error is not None:
-            err = self.error
-            en, code = _error_code(err)
-            if en == errno.ENODEV or code == _LIBUSB_ERROR_NO_DEVICE:
-                what = "was disconnected while streaming"
-            else:
-                what = "stopped streaming after a USB error"
-            msg = (
-                f"DAVIS240C {self._name} {what} ({err}); everything received before was "
-                "delivered. Replug the camera and open it again"
-            )
-            raise DeviceError(msg) from err
-        return None
-
-    def stats(self) -> StreamStats:
-        c = self._c
-        return StreamStats(
-            running=self._reader.is_alive(),
-            decode=self._decoder.stats,
-            error=None if self.error is None else str(self.error),
-            **c,
-        )
-
-
-def _payload_bytes(pkt: DavisPacket) -> int:
-    """Memory a queued packet holds (events, frame pixels, IMU samples, specials)."""
-    return (
-        pkt.events.nbytes
-        + pkt.imu.nbytes
-        + pkt.specials.nbytes
-        + sum(f.pixels.nbytes for f in pkt.frames)
-    )

@@ -24,6 +24,14 @@ Contract every implementation honours (the mock too):
   one camera come in capture order; nothing is delivered twice. A simulated camera may return
   immediately (simulated time); callers must not assume framesets of *different* cameras arrive
   in time order, and must measure durations with ``FrameTiming.host_time_ns``, never wall time.
+* Failures are :class:`~mocaprig.errors.DeviceError` subclasses that say what a user can act on:
+  a camera that went away (cable pulled, ``disconnect`` fault) raises
+  :class:`~mocaprig.errors.DeviceDisconnectedError` from then on; a requested serial that is not
+  connected, :class:`~mocaprig.errors.DeviceNotFoundError` (the message lists what is); a sensor
+  held by another program, :class:`~mocaprig.errors.DeviceBusyError`; a user without access,
+  :class:`~mocaprig.errors.DevicePermissionError`. The backend's own words stay in
+  ``backend_error`` and the cause is chained. Misuse (configure while streaming, poll before
+  start) stays a plain :class:`~mocaprig.errors.DeviceError`.
 * :class:`FrameTiming` carries the metadata untouched (device counter and µs timestamps, no
   unwrapping of the u32 device clock). When per-frame metadata is missing (no kernel patch), the
   domain is ``SYSTEM_TIME``, the hardware timestamps are ``None`` and the counter is host-made.

@@ -17,6 +17,11 @@ realsense-d415.md §3. The adapter works at the *sensor* level, not through ``rs
 * a camera in master or slave mode **refuses** to deliver frames without hardware timestamps
   (timestamp domain ``system_time``): sync could not be verified (§0.5, §2.6).
 
+Errors: pyrealsense2 raises plain ``RuntimeError`` (no error types, no codes), so the adapter
+reads the SDK's words to pick the :class:`~mocaprig.errors.DeviceError` subclass (disconnected,
+permission, busy, timeout; the text is kept as ``backend_error``); a requested serial that is not
+connected is a :class:`~mocaprig.errors.DeviceNotFoundError`.
+
 Anything that is an ``rs.device`` works: a USB camera, an ``rs.software_device`` (tests) or a
 playback device from ``rs.context().load_device(path)`` (``.db3``/``.bag``). Playback devices are
 read-only: :meth:`RealSenseCamera.configure` checks the recorded sync mode instead of writing it.
@@ -50,7 +55,15 @@ from mocaprig.acquire.depth_camera import (
     check_sync_mode,
     open_cameras,
 )
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 
 __all__ = [
     "METADATA_HINT",
@@ -83,6 +96,27 @@ _INSTALL_HINT: Final = (
     "pip install 'mocaprig[realsense]' (pins pyrealsense2==2.59.1.11053); the wheel also needs "
     "libusb-1.0 (Debian/Ubuntu: apt install libusb-1.0-0)"
 )
+
+
+# Words of librealsense errors (its own messages and the errno text it appends as "Last Error:
+# ...") -> the DeviceError subclass they mean; first match wins. "open(...) failed. UVC device
+# is streaming!" is what opening a sensor that another handle streams from says.
+_SDK_ERROR_WORDS: Final[tuple[tuple[tuple[str, ...], type[DeviceError]], ...]] = (
+    (("disconnected", "no such device", "not connected"), DeviceDisconnectedError),
+    (("permission denied", "access denied", "insufficient permission"), DevicePermissionError),
+    (("busy", "device is streaming"), DeviceBusyError),
+    (("timeout", "timed out", "didn't arrive", "did not arrive"), DeviceTimeoutError),
+)
+
+
+def _sdk_error(message: str, err: BaseException) -> DeviceError:
+    """``message`` as the :class:`DeviceError` subclass the SDK's words in ``err`` stand for,
+    keeping them as ``backend_error``; raise it ``from err``."""
+    text = str(err).lower()
+    for words, cls in _SDK_ERROR_WORDS:
+        if any(w in text for w in words):
+            return cls.from_cause(message, err)
+    return DeviceError.from_cause(message, err)
 
 
 def import_pyrealsense2() -> Any:
@@ -185,7 +219,7 @@ class RealSenseCamera:
                 if str(sensor.get_info(self._rs.camera_info.name)) == "Stereo Module":
                     return sensor
             msg = f"D415 {self._info.serial} has no depth sensor ('Stereo Module'); replug it"
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
 
     @property
     def info(self) -> CameraInfo:
@@ -209,7 +243,7 @@ class RealSenseCamera:
             return float(self._sensor.get_depth_scale())
         except (RuntimeError, AttributeError) as err:
             msg = f"D415 {self._info.serial}: cannot read the depth scale ({err})"
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
 
     @property
     def stats(self) -> CaptureStats:
@@ -254,7 +288,7 @@ class RealSenseCamera:
                 f"D415 {self._info.serial}: cannot set {name} = {value} ({err}); "
                 "check the range with `rs-enumerate-devices -o`"
             )
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
 
     def _get_option(self, name: str) -> float | None:
         option = getattr(self._rs.option, name)
@@ -330,7 +364,9 @@ class RealSenseCamera:
         """Open the depth sensor with IR(1) Y8 + depth Z16 and start into a frame queue.
 
         Raises:
-            DeviceError: not configured, already streaming, or the SDK refuses to open/start.
+            DeviceError: not configured, already streaming, or the SDK refuses to open/start
+                (:class:`DeviceBusyError`, :class:`DeviceDisconnectedError`, ... when the SDK's
+                words say which).
         """
         serial = self._info.serial
         if self._profiles is None or self._stream is None:
@@ -347,13 +383,13 @@ class RealSenseCamera:
             msg = (
                 f"D415 {serial}: cannot open the depth sensor ({err}); is another program using it?"
             )
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
         try:
             self._sensor.start(queue)
         except RuntimeError as err:
             self._sensor.close()
             msg = f"D415 {serial}: cannot start streaming ({err}); replug the camera"
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
         self._queue = queue
         self._streaming = True
         self._pending.clear()
@@ -371,7 +407,7 @@ class RealSenseCamera:
             self._sensor.close()
         except RuntimeError as err:
             msg = f"D415 {self._info.serial}: stopping failed ({err})"
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
         finally:
             self._queue = None
             self._pending.clear()
@@ -541,7 +577,7 @@ class RealSenseCamera:
             ext = ir.get_extrinsics_to(depth)
         except RuntimeError as err:
             msg = f"D415 {self._info.serial}: the SDK has no IR→depth extrinsics ({err})"
-            raise DeviceError(msg) from err
+            raise _sdk_error(msg, err) from err
         return Extrinsics(
             rotation=tuple(float(v) for v in ext.rotation),
             translation_m=(
@@ -563,18 +599,21 @@ def enumerate_cameras(
     Other RealSense models are skipped with a log line.
 
     Raises:
-        DeviceError: pyrealsense2 is missing, or a requested serial is not connected.
+        DeviceNotFoundError: a requested serial is not connected.
+        DeviceError: pyrealsense2 is missing.
     """
     rs = import_pyrealsense2()
     ctx = rs.context() if context is None else context
     wanted = None if serials is None else set(serials)
     cams: list[RealSenseCamera] = []
+    connected: list[str] = []  # every D415, wanted or not, for the "not connected" message
     for dev in ctx.query_devices():
         name = str(dev.get_info(rs.camera_info.name)) if dev.supports(rs.camera_info.name) else ""
         if "D415" not in name:
             _log.info("skipping RealSense device %r: not a D415", name)
             continue
         cam = RealSenseCamera(dev, queue_seconds=queue_seconds)
+        connected.append(cam.info.serial)
         if wanted is not None and cam.info.serial not in wanted:
             continue
         if not cam.info.is_usb3:
@@ -587,9 +626,9 @@ def enumerate_cameras(
     if wanted is not None:
         missing = wanted - {c.info.serial for c in cams}
         if missing:
-            seen = [c.info.serial for c in cams] or "none"
+            seen = sorted(connected) or "none"
             msg = f"D415 {', '.join(sorted(missing))} not connected (found: {seen}); check USB"
-            raise DeviceError(msg)
+            raise DeviceNotFoundError(msg)
     return sorted(cams, key=lambda c: c.info.serial)
 
 

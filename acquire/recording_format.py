@@ -23,6 +23,7 @@ import numpy.typing as npt
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import (  # type: ignore[import-untyped]
     descriptor_pb2,
     descriptor_pool,
@@ -33,6 +34,7 @@ from google.protobuf.descriptor_pb2 import (  # type: ignore[import-untyped]
 )
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from mocaprig.acquire.device_id import DeviceId, DeviceKind
 from mocaprig.acquire.events import EVENT_DTYPE, check_events
 from mocaprig.errors import RecordingError, ValidationError
 
@@ -56,6 +58,7 @@ __all__ = [
     "LogMsg",
     "RecordedPayload",
     "RecorderStatus",
+    "SceneUpdateMsg",
     "SchemaDef",
     "StreamStatus",
     "SyncPulses",
@@ -93,17 +96,13 @@ _PACKAGE: Final = "mocaprig"
 _PROTO_FILE: Final = "mocaprig/recording.proto"
 
 
-def topic(device: Literal["davis", "d415", "syncbox"], serial: str, stream: str) -> str:
+def topic(device: DeviceKind, serial: str, stream: str) -> str:
     """The topic of one device stream, e.g. ``topic("davis", "00000042", "events")``.
 
-    ``syncbox`` topics ignore ``serial`` (one box per rig): ``/syncbox/<stream>``.
+    Shorthand for ``DeviceId(device, serial).topic(stream)``; ``syncbox`` topics ignore
+    ``serial`` (one box per rig): ``/syncbox/<stream>``.
     """
-    if device == "syncbox":
-        return f"/syncbox/{stream}"
-    if not serial or "/" in serial:
-        msg = f"device serial {serial!r} must be non-empty and contain no '/'"
-        raise ValidationError(msg)
-    return f"/{device}/{serial}/{stream}"
+    return DeviceId(device, "" if device == "syncbox" else serial).topic(stream)
 
 
 # --------------------------------------------------------------------------------------------
@@ -872,6 +871,27 @@ class CameraCalibrationMsg:
 
 
 #: Schema name -> message class; what :func:`decode_payload` dispatches on.
+@dataclass(frozen=True, slots=True, eq=False)
+class SceneUpdateMsg:
+    """A 3-D scene update (``foxglove.SceneUpdate``): processing results (DeMoCap markers and
+    joints, fused clouds) that Foxglove's 3-D panel draws. ``update`` is the protobuf message."""
+
+    SCHEMA: ClassVar[SchemaDef] = _foxglove_schema(SceneUpdate)
+
+    update: Any = field(repr=False)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.update.ByteSize())
+
+    def encode(self) -> bytes:
+        return bytes(self.update.SerializeToString())
+
+    @classmethod
+    def decode(cls, data: bytes) -> Self:
+        return cls(_parse(SceneUpdate, data, "foxglove.SceneUpdate"))
+
+
 MESSAGE_TYPES: Final[Mapping[str, Any]] = {
     cls.SCHEMA.name: cls
     for cls in (
@@ -885,6 +905,7 @@ MESSAGE_TYPES: Final[Mapping[str, Any]] = {
         LogMsg,
         ImageMsg,
         CameraCalibrationMsg,
+        SceneUpdateMsg,
     )
 }
 

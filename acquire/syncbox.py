@@ -10,9 +10,14 @@ device path (``/dev/ttyACM0``, ``COM5``) or any ``serial.serial_for_url`` URL::
         total = box.stop()
 
 Every failure is a :class:`~mocaprig.errors.DeviceError` naming the port, what is wrong and what
-to do. A ``serial.SerialException`` during I/O (cable pulled, board reset) triggers a bounded
-reopen with exponential backoff; a run interrupted that way is not restarted silently unless
-``restart_after_reopen=True``.
+to do; the subclass says which kind (keeping pyserial's errno as ``backend_errno``): no such port
+(:class:`~mocaprig.errors.DeviceNotFoundError`), permission denied
+(:class:`~mocaprig.errors.DevicePermissionError`), port held by another program
+(:class:`~mocaprig.errors.DeviceBusyError`), no answer in time
+(:class:`~mocaprig.errors.DeviceTimeoutError`), I/O failed and could not be reopened
+(:class:`~mocaprig.errors.DeviceDisconnectedError`). A ``serial.SerialException`` during I/O
+(cable pulled, board reset) triggers a bounded reopen with exponential backoff; a run interrupted
+that way is not restarted silently unless ``restart_after_reopen=True``.
 """
 
 from __future__ import annotations
@@ -29,7 +34,15 @@ from types import TracebackType
 from typing import Any, Final, Self
 
 from mocaprig.acquire.depth_camera import load_mock_factory
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 from mocaprig.timebase import U32Unwrapper
 from mocaprig.validation import check_positive, check_range
 
@@ -164,14 +177,18 @@ class SyncBox:
         """Open the port and identify the box (``HELLO``).
 
         Raises:
-            DeviceError: port missing, permission denied, busy, wrong device, or no answer.
+            DeviceNotFoundError: the port does not exist.
+            DevicePermissionError: the user may not open the port.
+            DeviceBusyError: another program holds the port.
+            DeviceTimeoutError: no answer to ``HELLO`` within ``boot_timeout_s``.
+            DeviceError: the device is not a sync box (or speaks another protocol version).
         """
         if self._ser is not None:
             msg = f"sync box on {self.port} is already open"
             raise DeviceError(msg)
         self._open_port()
         try:
-            self.identity = self._hello()
+            self.identity = self._identify()
         except BaseException:
             self._close_port()
             raise
@@ -219,25 +236,32 @@ class SyncBox:
         self._buf = b""
 
     def _open_error(self, err: BaseException) -> DeviceError:
+        """The :class:`DeviceError` subclass for a failed open, keeping pyserial's errno."""
         code = getattr(err, "errno", None)
         text = str(err)
         if code == errno.EACCES or "Permission denied" in text:
-            return DeviceError(
+            return DevicePermissionError.from_cause(
                 f"sync box port {self.port}: permission denied; add yourself to the serial "
-                "group (sudo usermod -aG dialout $USER; log out and in) or install a udev rule"
-            )
-        if code == errno.ENOENT or "No such file" in text or "could not open port" in text:
-            seen = ", ".join(find_syncboxes()) or "none"
-            return DeviceError(
-                f"sync box port {self.port} does not exist (serial ports seen: {seen}); "
-                "check the USB cable or pass the right --port"
+                "group (sudo usermod -aG dialout $USER; log out and in) or install a udev rule",
+                err,
             )
         if code == errno.EBUSY or "busy" in text.lower():
-            return DeviceError(
+            return DeviceBusyError.from_cause(
                 f"sync box port {self.port} is busy; close the other program using it "
-                "(serial monitor, ModemManager)"
+                "(serial monitor, ModemManager)",
+                err,
             )
-        return DeviceError(f"cannot open sync box port {self.port}: {text}")
+        # pyserial words every open failure "could not open port ...": only without an errno
+        # (a URL handler's failure) does the text alone mean the port is missing.
+        words = "No such file" in text or "could not open port" in text
+        if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO) or (code is None and words):
+            seen = ", ".join(find_syncboxes()) or "none"
+            return DeviceNotFoundError.from_cause(
+                f"sync box port {self.port} does not exist (serial ports seen: {seen}); "
+                "check the USB cable or pass the right --port",
+                err,
+            )
+        return DeviceError.from_cause(f"cannot open sync box port {self.port}: {text}", err)
 
     def _close_port(self) -> None:
         ser, self._ser = self._ser, None
@@ -300,7 +324,7 @@ class SyncBox:
                     f"sync box on {self.port} did not answer {line.split()[0]} within "
                     f"{self._timeout_s:.1f} s; check the cable, or replug the box"
                 )
-                raise DeviceError(msg)
+                raise DeviceTimeoutError(msg)
             if self._file_report(reply):
                 continue
             if reply.startswith("ERR "):
@@ -337,7 +361,7 @@ class SyncBox:
                     time.sleep(delay)
                     try:
                         self._open_port()
-                        self.identity = self._hello()
+                        self.identity = self._identify()
                         reopened = True
                     except DeviceError as reopen_err:
                         _log.warning("sync box on %s: reopen failed: %s", self.port, reopen_err)
@@ -348,7 +372,7 @@ class SyncBox:
                         f"sync box on {self.port}: I/O failed during {what} ({err}) and "
                         f"{attempt} reopen attempt(s) failed; check the USB cable and replug"
                     )
-                    raise DeviceError(msg) from err
+                    raise DeviceDisconnectedError.from_cause(msg, err) from err
                 self.reconnects += 1
                 self._after_reconnect(what)
 
@@ -371,6 +395,24 @@ class SyncBox:
 
     def _command(self, line: str) -> str:
         return self._with_reopen(lambda: self._transact(line), line.split()[0])
+
+    def _identify(self) -> SyncBoxIdentity:
+        """:meth:`_hello`, with an I/O failure on the way turned into a :class:`DeviceError`."""
+        serial = self._serial_mod
+        try:
+            return self._hello()
+        except (serial.SerialException, OSError) as err:
+            if isinstance(err, serial.SerialTimeoutException):
+                msg = (
+                    f"sync box on {self.port} did not take HELLO within {self._timeout_s:.1f} s "
+                    f"({err}); check the cable, or replug the box"
+                )
+                raise DeviceTimeoutError.from_cause(msg, err) from err
+            msg = (
+                f"sync box on {self.port}: I/O failed while identifying it ({err}); check the "
+                "USB cable and replug"
+            )
+            raise DeviceDisconnectedError.from_cause(msg, err) from err
 
     def _hello(self) -> SyncBoxIdentity:
         """Send ``HELLO`` every 0.5 s until the banner arrives (the board may be booting)."""
@@ -395,12 +437,12 @@ class SyncBox:
                 f"the device on {self.port} is not a mocaprig sync box: it answered {heard} to "
                 "HELLO; check the port (another board?) and flash firmware/syncbox/syncbox.ino"
             )
-        else:
-            msg = (
-                f"no answer to HELLO from {self.port} within {self._boot_timeout_s:.1f} s; is "
-                "the sync box firmware flashed (firmware/syncbox/syncbox.ino) and the port right?"
-            )
-        raise DeviceError(msg)
+            raise DeviceError(msg)
+        msg = (
+            f"no answer to HELLO from {self.port} within {self._boot_timeout_s:.1f} s; is "
+            "the sync box firmware flashed (firmware/syncbox/syncbox.ino) and the port right?"
+        )
+        raise DeviceTimeoutError(msg)
 
     def _identity(self, line: str, parts: list[str]) -> SyncBoxIdentity:
         try:

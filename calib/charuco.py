@@ -14,7 +14,8 @@ camera poses and board poses jointly with ``scipy.optimize.least_squares`` (spar
 Frames and units:
     board: origin at the outer corner of the top-left square of the printed board, +X along
         the columns, +Y down the rows, +Z into the board (away from a viewer of the print); metres.
-    camera: OpenCV (+Z forward, +X right, +Y down), pixel (0, 0) the centre of the top-left pixel.
+    camera: OpenCV (+Z forward, +X right, +Y down), pixel (0, 0) the centre of the top-left pixel;
+        the refinement projects with :func:`calib.camera_model.project_camera`.
     world (extrinsics): the reference camera's frame (``world="camera"``, the default; its
         ``T_world_cam`` is the identity and ``Calibration.world_frame`` is its name), or the
         board's frame at the instant seen by the most cameras (``world="board"``;
@@ -49,6 +50,7 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from mocaprig.calib.calibration import Calibration, CameraCalibration
+from mocaprig.calib.camera_model import project_camera
 from mocaprig.errors import CalibrationError, ValidationError
 from mocaprig.validation import check_positive
 
@@ -807,19 +809,6 @@ def _solve_pnp(view: BoardView, k: F64, dist: F64) -> tuple[F64, float]:
     return _rt_to_T(np.asarray(rvec), np.asarray(tvec)), rms
 
 
-def _project(points_cam: F64, k: F64, dist: F64) -> F64:
-    """Brown–Conrady projection of camera points, per-point ``k (N, 3, 3)``, ``dist (N, 5)``."""
-    z = points_cam[:, 2]
-    a = points_cam[:, 0] / z
-    b = points_cam[:, 1] / z
-    k1, k2, p1, p2, k3 = (dist[:, i] for i in range(5))
-    r2 = a * a + b * b
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    ad = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
-    bd = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
-    return np.stack([k[:, 0, 0] * ad + k[:, 0, 2], k[:, 1, 1] * bd + k[:, 1, 2]], axis=1)
-
-
 def _parse_label(label: str) -> tuple[Literal["d415", "davis"], str]:
     kind, _, serial = label.partition("/")
     if kind not in ("d415", "davis") or not serial:
@@ -852,7 +841,8 @@ def _residuals(x: F64, p: _Problem, n_cam: int) -> F64:
     x_ref = r_i.apply(p.obj) + inst_params[p.inst_idx, 3:]
     r_c = Rotation.from_rotvec(cam_params[p.cam_idx, :3])
     x_cam = r_c.inv().apply(x_ref - cam_params[p.cam_idx, 3:])
-    uv = _project(x_cam, p.k, p.dist)
+    # Per-observation intrinsics; no depth test: the solver needs finite residuals everywhere.
+    uv = project_camera(x_cam, p.k, p.dist, min_depth_m=None)
     out: F64 = (uv - p.img).reshape(-1)
     return out
 

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from mocaprig.acquire.device_id import DeviceId
 from mocaprig.cli import add_json_flag, emit_json
 from mocaprig.errors import CalibrationError, ValidationError
 from mocaprig.progress import ProgressBar
@@ -85,13 +86,15 @@ def camera_topic(label: str) -> str:
     Raises:
         ValidationError: another label form.
     """
-    kind, _, serial = label.partition("/")
-    if kind == "d415" and serial and "/" not in serial:
-        return f"/d415/{serial}/ir"
-    if kind == "davis" and serial and "/" not in serial:
-        return f"/davis/{serial}/frame"
-    msg = f"camera {label!r}: give it as d415/<serial> or davis/<serial>"
-    raise ValidationError(msg)
+    try:
+        dev = DeviceId.parse(label)
+    except ValidationError as err:
+        msg = f"camera {label!r}: give it as d415/<serial> or davis/<serial>"
+        raise ValidationError(msg) from err
+    if dev.kind == "syncbox":
+        msg = f"camera {label!r}: give it as d415/<serial> or davis/<serial>"
+        raise ValidationError(msg)
+    return dev.topic("ir" if dev.kind == "d415" else "frame")
 
 
 def read_board_views(
@@ -113,6 +116,7 @@ def read_board_views(
             lists the topics).
         CalibrationError: the topic holds no image.
     """
+    from mocaprig.acquire.device_streams import devices
     from mocaprig.acquire.recording import Recording
     from mocaprig.calib.charuco import detect_charuco
 
@@ -124,7 +128,7 @@ def read_board_views(
     size: tuple[int, int] | None = None
     with Recording(session) as rec:
         if topic not in rec.topics:
-            cams = sorted({"/".join(t.split("/")[1:3]) for t in rec.topics if t.count("/") == 3})
+            cams = [d.label for d in devices(rec) if d.kind != "syncbox"]
             msg = f"{session} has no images of camera {camera!r} ({topic}); cameras: {cams}"
             raise CalibrationError(msg)
         total = sum(1 for _ in rec.messages(topic))

@@ -35,7 +35,7 @@ import logging
 import math
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Final
+from typing import Final
 
 import cv2
 import numpy as np
@@ -44,11 +44,15 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from mocaprig.acquire.device_streams import (
+    DeviceId,
+    RecordedD415,
+    d415_devices,
+    read_frame_sets,
+)
 from mocaprig.acquire.recording import Recording
-from mocaprig.acquire.recording_format import topic
-from mocaprig.errors import CalibrationError, ValidationError
+from mocaprig.errors import CalibrationError, RecordingError, ValidationError
 from mocaprig.progress import ProgressBar
-from mocaprig.timebase import unwrap_u32
 from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = [
@@ -76,7 +80,6 @@ DEFAULT_MIN_AREA_PX: Final = 3
 DEFAULT_MAX_AREA_PX: Final = 2000
 _KERNEL: Final = np.ones((3, 3), np.uint8)
 #: The wrap of the D415's u32 µs hardware clock.
-_U32_US: Final = 1 << 32
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -366,15 +369,28 @@ def crop_volume(points: npt.ArrayLike, lo: npt.ArrayLike, hi: npt.ArrayLike) -> 
 
 
 def merge_views(points: Sequence[npt.ArrayLike], *, radius_m: float = 0.010) -> F64:
-    """Merge the marker points of several views: points closer than ``radius_m`` (linked in a
-    chain) become one point, their mean. NaN rows are dropped.
+    """Fuse the marker points of several views into one cloud: the project's only view fusion.
+
+    The replay, the live pipeline and the DeMoCap training data
+    (:func:`process.democap.simdata.merge_views`, which crops to the capture box with
+    :func:`crop_volume` first, as the replay and the live pipeline do) all call this function,
+    so training and inference see the same fusion.
+
+    * **NaN handling**: a row with any non-finite coordinate (NaN, ±inf: a blob without depth)
+      is dropped before linking; it neither becomes a point nor links others.
+    * **Linking**: single linkage over all the remaining points of all views (two points of one
+      view link too): points closer than ``radius_m`` (``cKDTree.query_pairs``, distance
+      ≤ ``radius_m``), chained, form one cluster; each cluster becomes the mean of its points.
+    * **Order**: clusters in order of their first point in the concatenation of the views (view
+      order, then row order within a view), so a single view comes back in its own order when
+      no two of its points link.
 
     Args:
-        points: One ``(Ni, 3)`` array per view, in one frame (the world), metres.
+        points: One ``(Ni, 3)`` array per view, in one frame (the world), metres; not modified.
         radius_m: Linking distance (m).
 
     Returns:
-        ``(M, 3)`` merged points, in order of each cluster's first point.
+        ``(M, 3)`` merged points (a new array; ``(0, 3)`` when no view has a finite point).
     """
     r = check_positive(radius_m, name="radius_m")
     parts = [
@@ -408,12 +424,7 @@ def merge_views(points: Sequence[npt.ArrayLike], *, radius_m: float = 0.010) -> 
 
 
 def _d415_cameras(rec: Recording) -> list[str]:
-    out = []
-    for t in rec.topics:
-        parts = t.strip("/").split("/")
-        if len(parts) == 3 and parts[0] == "d415" and parts[2] == "ir":
-            out.append(f"d415/{parts[1]}")
-    return out
+    return [d.label for d in d415_devices(rec)]
 
 
 def measure_recording(
@@ -473,33 +484,28 @@ def measure_recording(
     total = sum(len(p.counters) for p in plans.values())
     bar: Callable[[int, int], None] | None = ProgressBar("markers") if progress else None
     out: dict[str, list[MarkerFrame]] = {cam: [] for cam in wanted}
-    pending: dict[tuple[str, int], dict[str, Any]] = {}
-    topic_of: dict[str, tuple[str, str]] = {}
-    for cam in wanted:
-        serial = cam.split("/", 1)[1]
-        topic_of[topic("d415", serial, "ir")] = (cam, "ir")
-        topic_of[topic("d415", serial, "depth")] = (cam, "depth")
+    devs = {DeviceId.parse(cam, kind="d415"): cam for cam in wanted}
     live = [p for p in plans.values() if p.counters]
     done = 0
     if live:
         start = min(p.log_lo for p in live)
         end = max(p.log_hi for p in live) + 1
-        for m in rec.messages(sorted(topic_of), start_ns=start, end_ns=end):
-            cam, kind = topic_of[m.topic]
+        frame_sets = read_frame_sets(
+            rec,
+            sorted(devs),
+            start_ns=start,
+            end_ns=end,
+            sequences={d: plans[cam].wanted_seq.keys() for d, cam in devs.items()},
+        )
+        for rfs in frame_sets:
+            fs = rfs.frames
+            cam = devs[DeviceId("d415", fs.serial)]
             plan = plans[cam]
-            key = (cam, int(m.sequence))
-            if key[1] not in plan.wanted_seq:
-                continue
-            slot = pending.setdefault(key, {})
-            slot[kind] = m.decode().image
-            if len(slot) < 2:
-                continue
-            del pending[key]
-            counter, t_dev = plan.wanted_seq[key[1]]
+            counter, t_dev = plan.wanted_seq[rfs.sequence]
             out[cam].append(
                 measure_frame(
-                    slot["ir"],
-                    slot["depth"],
+                    fs.infrared.image,
+                    fs.depth.image,
                     plan.K,
                     depth_scale_m=plan.depth_scale_m,
                     camera=cam,
@@ -547,7 +553,7 @@ def _check_cameras_present(rec: Recording, wanted: Sequence[str], available: Seq
 
 
 def _label(camera: str) -> str:
-    return camera if camera.startswith("d415/") else f"d415/{camera}"
+    return DeviceId.parse(camera, kind="d415").label
 
 
 def frame_times(rec: Recording, *, cameras: Sequence[str] | None = None) -> dict[str, I64]:
@@ -582,46 +588,13 @@ def _plan_camera(
     every: int,
     keep: Collection[int] | None,
 ) -> _Plan:
-    serial = cam.split("/", 1)[1]
-    info_topic = topic("d415", serial, "camera_info")
-    if info_topic not in rec.channels:
-        msg = f"{rec.path}: {cam} has no camera_info topic, so its intrinsics are unknown"
-        raise CalibrationError(msg)
-    calib = next((p for _, p in rec.decoded(info_topic)), None)
-    if calib is None:
-        msg = f"{rec.path}: {cam}'s camera_info topic is empty, so its intrinsics are unknown"
-        raise CalibrationError(msg)
-    K = np.array(calib.k, dtype=np.float64).reshape(3, 3)
-    dist = np.zeros(5)
-    d = np.array(calib.d, dtype=np.float64)
-    dist[: min(5, d.size)] = d[:5]
-    fi_topic = topic("d415", serial, "frame_info")
-    rows: list[tuple[int, int, int, int | None, float]] = []  # log, seq, counter, stamp_us, scale
-    if fi_topic in rec.channels:
-        for m in rec.messages(fi_topic):
-            fi = m.decode()
-            rows.append(
-                (
-                    m.log_time_ns,
-                    int(m.sequence),
-                    int(fi.frame_counter),
-                    fi.sensor_timestamp_us,
-                    float(fi.depth_scale_m),
-                )
-            )
-    scale = next((r[4] for r in rows if r[4] > 0), 0.001)
-    if rows and all(r[3] is not None for r in rows):
-        stamps = unwrap_u32(np.array([r[3] for r in rows], dtype=np.int64))
-        t_dev = stamps * 1000
-        seqs = [(r[0], r[1], r[2]) for r in rows]
-    else:
-        # No device stamps: fall back to the image stamps (host clock) of the IR topic.
-        seqs, t_list = [], []
-        for m in rec.messages(topic("d415", serial, "ir")):
-            seqs.append((m.log_time_ns, int(m.sequence), int(m.sequence)))
-            t_list.append(int(m.decode().timestamp_ns))
-        t_dev = np.array(t_list, dtype=np.int64)
-        _log.warning("%s: no device timestamps in frame_info; using the image stamps", cam)
+    d415 = RecordedD415(rec, DeviceId.parse(cam, kind="d415"))
+    try:
+        intr = d415.intrinsics()
+    except RecordingError as err:
+        raise CalibrationError(str(err)) from err
+    index = d415.frame_index()
+    t_dev = index.t_dev_ns
     order = np.argsort(t_dev, kind="stable")
     sel = []
     for i in order:
@@ -631,10 +604,11 @@ def _plan_camera(
         if t_range_ns is None or int(t_range_ns[0]) <= t < int(t_range_ns[1]):
             sel.append(int(i))
     sel = sel[::every]
-    plan = _Plan(K, dist, scale, [seqs[i][2] for i in sel], {})
+    counters = [int(index.frame_counter[i]) for i in sel]
+    plan = _Plan(intr.k, intr.distortion, index.depth_scale_m, counters, {})
     for i in sel:
-        plan.wanted_seq[seqs[i][1] & 0xFFFFFFFF] = (seqs[i][2], int(t_dev[i]))
+        plan.wanted_seq[int(index.sequence[i])] = (int(index.frame_counter[i]), int(t_dev[i]))
     if sel:
-        logs = [seqs[i][0] for i in sel]
-        plan.log_lo, plan.log_hi = min(logs), max(logs)
+        logs = index.log_time_ns[sel]
+        plan.log_lo, plan.log_hi = int(logs.min()), int(logs.max())
     return plan

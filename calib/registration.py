@@ -20,7 +20,8 @@ The recipe of DeMoCap §3.4 and ``../shared/docs/calibration-vicon.md`` §3.2–
 
 Frames and units: world = Vicon (metres, Z up); camera = OpenCV (+Z forward, +Y down);
 ``T_world_cam`` (4×4) maps camera to world, translation in metres; pixels per
-``cv2.projectPoints`` with Brown–Conrady ``(k1, k2, p1, p2, k3)``.
+``cv2.projectPoints`` with Brown–Conrady ``(k1, k2, p1, p2, k3)``, computed by
+:mod:`calib.camera_model` (:func:`project_points` is its function, re-exported here).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from scipy.sparse import lil_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from mocaprig.calib.camera_model import project_camera, project_points
 from mocaprig.errors import CalibrationError, ValidationError
 from mocaprig.validation import check_positive, check_range, check_shape
 
@@ -491,39 +493,6 @@ def coarse_align(
 # --------------------------------------------------------------------------------------------
 
 
-def project_points(
-    points_world: npt.ArrayLike,
-    T_world_cam: npt.ArrayLike,
-    K: npt.ArrayLike,
-    distortion: npt.ArrayLike,
-) -> tuple[F64, F64]:
-    """Project world points ``(N, 3)`` into a camera: ``(uv_px (N, 2), z_m (N,))``.
-
-    Brown–Conrady distortion as ``cv2.projectPoints``; NaN pixels for points at or behind the
-    camera.
-    """
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    p = np.asarray(points_world, dtype=np.float64)
-    pc = (p - T[:3, 3]) @ T[:3, :3]
-    return _project_cam(pc, np.asarray(K, dtype=np.float64), np.asarray(distortion, np.float64))
-
-
-def _project_cam(pc: F64, K: F64, dist: F64) -> tuple[F64, F64]:
-    z = pc[..., 2]
-    ok = z > 1e-9
-    zs = np.where(ok, z, 1.0)
-    a = pc[..., 0] / zs
-    b = pc[..., 1] / zs
-    k1, k2, p1, p2, k3 = dist
-    r2 = a * a + b * b
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    ad = a * radial + 2.0 * p1 * a * b + p2 * (r2 + 2.0 * a * a)
-    bd = b * radial + p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * a * b
-    uv = np.stack([K[0, 0] * ad + K[0, 1] * bd + K[0, 2], K[1, 1] * bd + K[1, 2]], axis=-1)
-    uv[~ok] = np.nan
-    return uv, z
-
-
 @dataclass(frozen=True, slots=True)
 class BundleProblem:
     """One camera's matched observations for :func:`bundle_adjust`.
@@ -612,7 +581,7 @@ def _solve(
         for c, prob in enumerate(problems):
             r, centre = _pose_from_params(x[6 * c : 6 * c + 6], r0s[c])
             pc = (pts[c] - centre) @ r
-            uv, _ = _project_cam(pc, prob.K, prob.distortion)
+            uv = project_camera(pc, prob.K, prob.distortion)
             res = uv - uvs[c]
             out.append(np.nan_to_num(res, nan=1e3).ravel())
         return np.concatenate(out) if out else np.zeros(0)
@@ -727,7 +696,7 @@ def bundle_adjust(
 
 def _reprojection_norms(p: BundleProblem, x: F64, r0: F64) -> F64:
     r, centre = _pose_from_params(x, r0)
-    uv, _ = _project_cam((p.points_world_m - centre) @ r, p.K, p.distortion)
+    uv = project_camera((p.points_world_m - centre) @ r, p.K, p.distortion)
     err: F64 = np.nan_to_num(np.linalg.norm(uv - p.uv_px, axis=1), nan=1e3)
     return err
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocaprig.acquire.device_id import DeviceId
 from mocaprig.calib.registration import project_points
 from mocaprig.calib.vicon_calibration import ViconCalibrationResult
 from mocaprig.errors import CalibrationError
@@ -128,7 +129,7 @@ def write_report(
     names = list(result.registrations)
     rms = [result.registrations[n].bundle.reprojection_rms_px for n in names]
     ax.bar(range(len(names)), rms)
-    ax.set_xticks(range(len(names)), [n.split("/")[-1] for n in names], rotation=20)
+    ax.set_xticks(range(len(names)), [DeviceId.parse(n).serial or n for n in names], rotation=20)
     ax.set_ylabel("reprojection RMS (px)")
     ax.set_title("per-camera reprojection")
     p = out / "reprojection_per_camera.png"

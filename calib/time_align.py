@@ -72,6 +72,7 @@ from scipy.spatial import cKDTree
 
 from mocaprig.acquire.events import check_events
 from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.camera_model import project_points
 from mocaprig.calib.markers import MarkerFrame
 from mocaprig.calib.vicon import AnalogChannels, MarkerTrajectories
 from mocaprig.errors import CalibrationError, ValidationError
@@ -108,6 +109,8 @@ VICON_CLAPPER_LABELS: Final = ("clapper:TOP", "clapper:BOTTOM")
 _OPEN_MIN_M: Final = 0.05
 #: Plausible marker-centre distances of a closed clapper (m).
 _CONTACT_RANGE_M: Final = (0.005, 0.15)
+#: Vicon markers nearer to a camera than this (m) are not projected into it (reprojection).
+_MIN_DEPTH_M: Final = 0.05
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -1202,16 +1205,10 @@ def _interp_positions(t_ref: F64, tv: F64, pos: F64) -> F64:
 
 
 def _project(p_world: F64, k: F64, t_world_cam: F64) -> F64:
-    """Pinhole projection (no distortion) of world points ``(..., 3)``; NaN behind the camera."""
-    r, t = t_world_cam[:3, :3], t_world_cam[:3, 3]
-    pc = (p_world - t) @ r
-    z = pc[..., 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = k[0, 0] * pc[..., 0] / z + k[0, 1] * pc[..., 1] / z + k[0, 2]
-        v = k[1, 1] * pc[..., 1] / z + k[1, 2]
-    out: F64 = np.stack([u, v], axis=-1)
-    out[~(z > 0.05)] = np.nan
-    return out
+    """Pinhole projection (no distortion: rectified D415) of world points ``(..., 3)``; NaN
+    closer than :data:`_MIN_DEPTH_M` or behind the camera."""
+    uv, _ = project_points(p_world, t_world_cam, k, None, min_depth_m=_MIN_DEPTH_M)
+    return uv
 
 
 def _pair_residuals(

@@ -58,8 +58,16 @@ import numpy as np
 import numpy.typing as npt
 
 from mocaprig import __version__
+from mocaprig.acquire.device_streams import (
+    D415Settings,
+    DeviceId,
+    RecordedD415,
+    RecordedDavis,
+    d415_devices,
+    davis_devices,
+    read_frame_sets,
+)
 from mocaprig.acquire.recording import Recording
-from mocaprig.acquire.recording_format import topic
 from mocaprig.calib.calibration import (
     Calibration,
     CameraCalibration,
@@ -76,7 +84,7 @@ from mocaprig.calib.registration import (
 from mocaprig.calib.time_align import ClapDetection, SyncEdges
 from mocaprig.calib.vicon import MarkerTrajectories
 from mocaprig.errors import CalibrationError, RecordingError, ValidationError
-from mocaprig.timebase import unwrap_u32_from
+from mocaprig.timebase import U32_US_WRAP, unwrap_u32_from
 from mocaprig.validation import check_positive
 
 __all__ = [
@@ -106,10 +114,9 @@ ATTACHMENT_NAME: Final = "calibration.toml"
 #: A body marker cloud spans 0.3–4 m; outside [_MIN_EXTENT_M, _MAX_EXTENT_M] the units are wrong.
 _MIN_EXTENT_M: Final = 0.2
 _MAX_EXTENT_M: Final = 10.0
-_U32_US: Final = 1 << 32
 #: Length of the stretches of frames that each give one clock offset (ns).
 _CHUNK_NS: Final = 500_000_000
-_U32_NS: Final = _U32_US * 1000
+_U32_NS: Final = U32_US_WRAP * 1000
 
 
 @dataclass(frozen=True, slots=True)
@@ -356,37 +363,50 @@ class _Cam:
     height: int
     K: F64
     dist: F64
-    sync_mode: int | None = None  # inter_cam_sync_mode from the recording's metadata
+    settings: D415Settings
+
+    @property
+    def device(self) -> DeviceId:
+        return DeviceId("d415", self.serial)
+
+    @property
+    def sync_mode(self) -> int | None:
+        """``inter_cam_sync_mode`` from the recording's metadata (None: unknown)."""
+        mode = self.settings.sync_mode
+        return None if mode is None else int(mode)
+
+    @property
+    def exposure_us(self) -> int | None:
+        """Recorded manual exposure, µs (None: the recorder was not given the options)."""
+        return None if self.settings.options is None else self.settings.options.exposure_us
 
 
 def _cameras(rec: Recording, wanted: Sequence[str] | None, source: str) -> list[_Cam]:
-    available = [
-        f"d415/{t.strip('/').split('/')[1]}"
-        for t in rec.topics
-        if t.startswith("/d415/") and t.endswith("/ir")
-    ]
-    names = [c if c.startswith("d415/") else f"d415/{c}" for c in (wanted or available)]
+    available = d415_devices(rec)
+    try:
+        names = [DeviceId.parse(c, kind="d415") for c in wanted] if wanted else available
+    except ValidationError as err:
+        msg = f"{source}: {err}"
+        raise CalibrationError(msg) from err
     if not names:
         msg = f"{source}: the recording has no D415 stream (/d415/<serial>/ir)"
         raise CalibrationError(msg)
-    metadata = rec.metadata()
     out = []
-    for cam in names:
-        if cam not in available:
-            msg = f"{source}: no D415 {cam!r}; the recording has {available or 'none'}"
+    for dev in names:
+        if dev not in available:
+            have = [d.label for d in available]
+            msg = f"{source}: no D415 {dev.label!r}; the recording has {have or 'none'}"
             raise CalibrationError(msg)
-        serial = cam.split("/", 1)[1]
-        info = next((p for _, p in rec.decoded(topic("d415", serial, "camera_info"))), None)
-        if info is None or not info.k or info.k[0] <= 0:
-            msg = f"{source}: {cam} has no camera_info, so its intrinsics are unknown"
-            raise CalibrationError(msg)
-        K = np.array(info.k, dtype=np.float64).reshape(3, 3)
-        dist = np.zeros(5)
-        d = np.array(info.d, dtype=np.float64)
-        dist[: min(5, d.size)] = d[:5]
-        mode = metadata.get(f"device/d415/{serial}", {}).get("sync_mode")
-        sync_mode = int(mode) if mode is not None and str(mode).isdigit() else None
-        out.append(_Cam(cam, serial, int(info.width), int(info.height), K, dist, sync_mode))
+        d415 = RecordedD415(rec, dev)
+        try:
+            intr = d415.intrinsics()
+            settings = d415.settings()
+        except RecordingError as err:
+            msg = f"{source}: {err}"
+            raise CalibrationError(msg) from err
+        out.append(
+            _Cam(dev.label, dev.serial, intr.width, intr.height, intr.k, intr.distortion, settings)
+        )
     return out
 
 
@@ -405,19 +425,17 @@ def _unwrap_ns(stamp_us: int, anchor_us: int) -> int:
 
 
 def _probe(rec: Recording, cam: _Cam, log_ns: int, anchor_us: int) -> _Probe | None:
-    m = next(iter(rec.messages(topic("d415", cam.serial, "frame_info"), start_ns=log_ns)), None)
-    if m is None:
+    first = RecordedD415(rec, cam.device).frame_info_at(log_ns)
+    if first is None:
         return None
-    fi = m.decode()
+    m_log_ns, fi = first
     if fi.sensor_timestamp_us is None:
         msg = (
             f"{rec.path}: {cam.name} frames have no device timestamps (no metadata); the "
             "calibration needs the D415 hardware clock"
         )
         raise CalibrationError(msg)
-    return _Probe(
-        m.log_time_ns, _unwrap_ns(int(fi.sensor_timestamp_us), anchor_us), fi.frame_counter
-    )
+    return _Probe(m_log_ns, _unwrap_ns(int(fi.sensor_timestamp_us), anchor_us), fi.frame_counter)
 
 
 def _log_at(
@@ -454,35 +472,26 @@ def _read_frames(
     their camera's ``dev_windows`` entry; one pass over the recording's chunks for all cameras."""
     from mocaprig.calib.markers import measure_frame
 
-    by_topic: dict[str, tuple[_Cam, str]] = {}
-    for c in cams:
-        for kind in ("ir", "depth", "frame_info"):
-            by_topic[topic("d415", c.serial, kind)] = (c, kind)
-    pending: dict[tuple[str, int], dict[str, Any]] = {}
+    by_device = {c.device: c for c in cams}
     out: dict[str, list[MarkerFrame]] = {c.name: [] for c in cams}
-    for m in rec.messages(sorted(by_topic), start_ns=log_lo, end_ns=log_hi + 1):
-        cam, kind = by_topic[m.topic]
-        key = (cam.name, int(m.sequence))
-        slot = pending.setdefault(key, {})
-        slot[kind] = m if kind != "frame_info" else m.decode()
-        if not {"ir", "depth", "frame_info"} <= slot.keys():
+    for rfs in read_frame_sets(rec, list(by_device), start_ns=log_lo, end_ns=log_hi + 1):
+        fs = rfs.frames
+        cam = by_device[DeviceId("d415", fs.serial)]
+        stamp_us = fs.timing.sensor_timestamp_us
+        if stamp_us is None:
             continue
-        del pending[key]
-        fi = slot["frame_info"]
-        if fi.sensor_timestamp_us is None:
-            continue
-        t_dev = _unwrap_ns(int(fi.sensor_timestamp_us), anchors[cam.name])
+        t_dev = _unwrap_ns(int(stamp_us), anchors[cam.name])
         lo, hi = dev_windows[cam.name]
         if not lo <= t_dev < hi:
             continue
         mf = measure_frame(
-            slot["ir"].decode().image,
-            slot["depth"].decode().image,
+            fs.infrared.image,
+            fs.depth.image,
             cam.K,
-            depth_scale_m=float(fi.depth_scale_m) or 0.001,
+            depth_scale_m=fs.depth_scale_m,
             camera=cam.name,
             t_dev_ns=t_dev,
-            frame_counter=int(fi.frame_counter),
+            frame_counter=int(fs.timing.frame_counter),
             distortion=cam.dist,
         )
         out[cam.name].append(mf)
@@ -675,45 +684,28 @@ def _davis_pulse_inputs(
     starts they mark, with that master's frame delay (half its exposure: a D415 stamps frames
     mid-exposure). Rising-edge events (type 2) are used as they are; whole pulses (type 4,
     stamped at the trailing edge) are moved back by ``sync_pulse_us``."""
-    from mocaprig.acquire.davis240c_decode import SpecialType
 
-    meta = rec.metadata()
     master, delay, why = None, 0, ""
     for cam in cams:
-        dev = meta.get(f"device/{cam.name}", {})
-        if dev.get("sync_mode") == "1":
+        if cam.sync_mode == 1:
             master = cam.name
-            try:
-                delay = round(float(dev["options.exposure_us"]) * 500.0)
-            except (KeyError, ValueError):
+            if cam.exposure_us is None:
                 master, why = None, f"{cam.name}'s metadata has no options.exposure_us"
+            else:
+                delay = round(float(cam.exposure_us) * 500.0)
             break
     else:
         why = "no calibrated D415 is the sync master (device metadata sync_mode = 1)"
     out = []
-    for t in sorted(rec.topics):
-        parts = t.strip("/").split("/")
-        if len(parts) != 3 or parts[0] != "davis" or parts[2] != "trigger":
+    for dev in davis_devices(rec):
+        davis = RecordedDavis(rec, dev)
+        if not davis.has("trigger"):
             continue
-        chunks: list[Any] = [np.asarray(p.specials) for _, p in rec.decoded(t)]
-        sp: Any = np.concatenate(chunks) if chunks else np.zeros(0)
+        edges, none_why = davis.external_edges_ns(pulse_us=sync_pulse_us)
         note = why
-        edges = np.zeros(0, dtype=np.int64)
-        if sp.size:
-            ty = sp["type"].astype(np.int64)
-            tus = sp["t"].astype(np.int64)
-            resets = np.flatnonzero(ty == int(SpecialType.TIMESTAMP_RESET))
-            start = int(resets[-1]) + 1 if resets.size else 0
-            ty, tus = ty[start:], tus[start:]
-            rising = tus[ty == int(SpecialType.EXTERNAL_INPUT_RISING_EDGE)]
-            if rising.size:
-                edges = rising * 1000
-            else:
-                pulses = tus[ty == int(SpecialType.EXTERNAL_INPUT_PULSE)]
-                edges = pulses * 1000 - round(sync_pulse_us * 1000.0)
         if not edges.size and not note:
-            note = "its trigger topic holds no external-input edges after the last reset"
-        out.append(_DavisPulses(f"davis/{parts[1]}", np.unique(edges), master, delay, note))
+            note = none_why
+        out.append(_DavisPulses(dev.label, edges, master, delay, note))
     return out
 
 
@@ -836,13 +828,9 @@ def _sync_channel_inputs(
                 f"sync master (sync_mode 1); {fallback}"
             ),
         )
-    meta = rec.metadata()
 
     def exposure_ns(c: _Cam) -> float | None:
-        try:
-            return float(meta[f"device/{c.name}"]["options.exposure_us"]) * 1e3
-        except (KeyError, ValueError):
-            return None
+        return None if c.exposure_us is None else float(c.exposure_us) * 1e3
 
     exp_m = exposure_ns(master)
     if exp_m is None:
@@ -1057,7 +1045,11 @@ def calibrate_vicon(
     notes: list[str] = []
     with rec:
         cams = _cameras(rec, opt.cameras, str(session_mcap))
-        fi_topics = [topic("d415", c.serial, "frame_info") for c in cams]
+        fi_topics = [c.device.topic("frame_info") for c in cams]
+        missing = [c.name for c in cams if c.device.topic("frame_info") not in rec.channels]
+        if missing:
+            msg = f"{session_mcap}: {missing[0]} has no frames (no frame_info stream)"
+            raise CalibrationError(msg)
         first_msg = next(iter(rec.messages(fi_topics)), None)
         if first_msg is None:
             msg = f"{session_mcap}: the D415 streams hold no frames"
@@ -1067,8 +1059,8 @@ def calibrate_vicon(
             end_log = first_msg.log_time_ns + 2 * (end_log - first_msg.log_time_ns)
         firsts: dict[str, _Probe] = {}
         for c in cams:
-            fi = next(iter(rec.messages(topic("d415", c.serial, "frame_info"))), None)
-            p = None if fi is None else _probe(rec, c, fi.log_time_ns, 0)
+            fi = RecordedD415(rec, c.device).frame_info_at()
+            p = None if fi is None else _probe(rec, c, fi[0], 0)
             if p is None:
                 msg = f"{session_mcap}: {c.name} has no frames"
                 raise CalibrationError(msg)

@@ -460,8 +460,9 @@ def write_board_recording(
     Raises:
         RecordingError: ``path`` exists (never overwritten).
     """
+    from mocaprig.acquire.device_id import DeviceId
     from mocaprig.acquire.recorder import Recorder
-    from mocaprig.acquire.recording_format import ImageMsg, topic
+    from mocaprig.acquire.recording_format import ImageMsg
 
     rig = default_rig(stream_rng(seed, "rig"))
     cams: list[tuple[str, PinholeCamera]] = []
@@ -478,11 +479,11 @@ def write_board_recording(
                                                     "seed": str(seed)}}) as rec:  # fmt: skip
         handles = []
         for label, _ in cams:
-            kind, serial = label.split("/")
-            stream = "ir" if kind == "d415" else "frame"
-            meta = {"serial": serial, "device": "D415" if kind == "d415" else "DAVIS240C",
-                    "frame_id": f"{kind}_{serial}"}  # fmt: skip
-            handles.append(rec.add_stream(topic(kind, serial, stream), ImageMsg, metadata=meta,  # type: ignore[arg-type]
+            dev = DeviceId.parse(label)
+            stream = "ir" if dev.kind == "d415" else "frame"
+            meta = {"serial": dev.serial, "device": "D415" if dev.kind == "d415" else "DAVIS240C",
+                    "frame_id": dev.frame_id}  # fmt: skip
+            handles.append(rec.add_stream(dev.topic(stream), ImageMsg, metadata=meta,
                                           queue_messages=100_000, queue_bytes=1 << 30))  # fmt: skip
         for k, (T, tk) in enumerate(zip(all_poses, t, strict=True)):
             bright = float(rng.uniform(0.7, 1.0))

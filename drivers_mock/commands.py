@@ -164,9 +164,10 @@ examples:
       the same on fast strikes; one JSON object with every figure
 
 The demo runs the whole toolkit as far as it exists: simulate, record, check the recording,
-Vicon I/O, calibration, DeMoCap on held-out takes and the DeMoCap replay of the recording
-(demo-out/results.mcap, .c3d, .csv; every 3rd rig instant); report.json lists the stages that
-later versions add (EventCap) as pending.
+Vicon I/O, calibration, DeMoCap on held-out takes, the DeMoCap replay of the recording
+(demo-out/results.mcap, .c3d, .csv; every 3rd rig instant) and 1 s of `democap live` on the
+mock rig of the same world (demo-out/live.mcap); report.json lists the stages that later
+versions add (EventCap) as pending.
 """
 
 
@@ -224,6 +225,7 @@ def _demo(args: argparse.Namespace) -> int:
     c = f.get("calibration", {})
     d = f.get("democap", {})
     rp = f.get("democap_replay", {})
+    lv = f.get("democap_live", {})
     lines = [
         f"mocaprig demo: scenario {f['scenario']!r}, seed {f['seed']}, {f['seconds']:g} s",
         "stages:",
@@ -280,10 +282,19 @@ def _demo(args: argparse.Namespace) -> int:
             if "error" not in rp and rp
             else f"  DeMoCap replay: {rp.get('error', 'not run')}"
         ),
+        (
+            f"  DeMoCap live on the mock rig ({len(lv['cameras'])} D415s, {lv['seconds']:g} s): "
+            f"{lv['instants']} instants, MPJPE {lv.get('mpjpe_mm', float('nan')):.1f} mm vs "
+            f"truth, {lv['drops']} dropped, {lv['fps']:.1f} instants/s (the simulator renders "
+            "on this CPU)"
+            if "error" not in lv and lv
+            else f"  DeMoCap live: {lv.get('error', 'not run')}"
+        ),
         "outputs:",
         f"  session (truth + Vicon C3D/CSV + session.mcap): {report.session_dir}",
         f"  calibration: {c.get('calibration_file', '-')}",
         f"  DeMoCap replay: {rp.get('results_mcap', '-')} (+ .c3d, .csv)",
+        f"  DeMoCap live:   {lv.get('out', '-')}",
         f"  summary figure: {report.figure_path}",
         f"  report:         {report.report_path}",
     ]

@@ -113,7 +113,7 @@ from mocaprig.drivers_mock.d415_render import (
 )
 from mocaprig.drivers_mock.rig import D415Spec
 from mocaprig.drivers_mock.scenario import Scenario, build_scenario, stream_rng
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import DeviceDisconnectedError, DeviceError, ValidationError
 
 __all__ = [
     "FAULT_KINDS",
@@ -487,7 +487,7 @@ class MockD415:
                 f"D415 {self.spec.serial} (mock) was disconnected (injected fault); "
                 "check the USB cable and hub, then reopen the camera"
             )
-            raise DeviceError(msg)
+            raise DeviceDisconnectedError(msg)
 
     # -- protocol: configuration ----------------------------------------------------------------
 

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mocaprig import __version__
+from mocaprig.acquire.device_id import DeviceId
 from mocaprig.calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
 from mocaprig.drivers_mock.session import SimulationResult, simulate_session
 from mocaprig.drivers_mock.truth import Truth, read_truth
@@ -50,6 +51,8 @@ _PENDING_STAGES: tuple[tuple[str, str], ...] = (
 #: The demo replays every n-th rig instant of its recording (10 Hz of the 30 Hz D415s) to keep
 #: its extra time small.
 REPLAY_EVERY = 3
+#: Seconds of the mock rig the demo runs ``democap live`` on.
+LIVE_SECONDS = 1.0
 
 
 def _replay_figures(
@@ -89,6 +92,52 @@ def _replay_figures(
     }
 
 
+def _live_figures(
+    sim: SimulationResult, out: Path, calib_path: Path, truth: Truth, cameras: int
+) -> dict[str, Any]:
+    """``democap live`` on the mock rig of the demo's world for :data:`LIVE_SECONDS`: the
+    cameras' frame sets -> instants -> the live pipeline -> ``live.mcap``, scored like the
+    replay."""
+    from mocaprig.acquire.depth_camera import open_cameras
+    from mocaprig.calib.calibration import read_calibration
+    from mocaprig.drivers_mock.truth import democap_truth_at
+    from mocaprig.process.democap.evaluate import EVAL_JOINTS
+    from mocaprig.process.democap.live_capture import run_live
+    from mocaprig.process.metrics import pose_metrics
+
+    results: list[tuple[Any, Any]] = []
+    path = out / "live.mcap"
+    path.unlink(missing_ok=True)  # the demo owns its folder (--overwrite was checked)
+    cams = open_cameras(
+        "mock", scenario=sim.scenario.name, seed=sim.seed, seconds=sim.seconds, count=cameras
+    )
+    try:
+        summary = run_live(
+            cams,
+            read_calibration(calib_path),
+            seconds=LIVE_SECONDS,
+            out=path,
+            on_result=lambda res, inst: results.append((res, inst)),
+        )
+    finally:
+        for cam in cams:
+            cam.close()
+    ok = [(r, i) for r, i in results if r.prediction is not None]
+    figures = summary.as_dict()
+    if ok:
+        t = np.array([i.t_ref_ns for _, i in ok], dtype=np.int64)
+        _, true_j = democap_truth_at(truth, t, clock="vicon")
+        pred_j = np.stack([r.prediction.joints_m for r, _ in ok])
+        keep = list(EVAL_JOINTS)
+        m = pose_metrics(pred_j[:, keep] * 1e3, true_j[:, keep] * 1e3)
+        figures.update({"mpjpe_mm": m.mpjpe_mm, "pck50": m.pck50})
+    figures["note"] = (
+        "the mock cameras render on this CPU while the network runs: the rate is the "
+        "simulator's, not the pipeline's (benchmarks/democap_infer.py)"
+    )
+    return figures
+
+
 def _calibration_figures(sim: SimulationResult, out: Path) -> dict[str, Any]:
     """Calibrate the recorded D415s (and the DAVIS clock) against the Vicon trial; score it."""
     from mocaprig.calib.calibration import write_calibration
@@ -99,8 +148,8 @@ def _calibration_figures(sim: SimulationResult, out: Path) -> dict[str, Any]:
     calib_path = write_calibration(result.calibration, out / "calib.toml", overwrite=True)
     ev = evaluate_calibration(result.calibration, sim.out_dir)
     per_device = ev.as_dict()["devices"]
-    cams = [d for d in ev.devices if d.device.startswith("d415/")]
-    davis = [d for d in ev.devices if d.device.startswith("davis/")]
+    cams = [d for d in ev.devices if DeviceId.parse(d.device).kind == "d415"]
+    davis = [d for d in ev.devices if DeviceId.parse(d.device).kind == "davis"]
 
     def worst(values: list[float]) -> float:
         finite = [abs(v) for v in values if np.isfinite(v)]
@@ -186,7 +235,14 @@ def _recording_figures(path: Path) -> dict[str, Any]:
     """``info``, the D415 sync check, DAVIS statistics and trigger pairing of a recording."""
     from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker
     from mocaprig.acquire.davis240c_decode import SpecialType
-    from mocaprig.acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain
+    from mocaprig.acquire.depth_camera import SyncMode
+    from mocaprig.acquire.device_streams import (
+        RecordedD415,
+        RecordedDavis,
+        d415_devices,
+        davis_devices,
+        frame_timings,
+    )
     from mocaprig.acquire.recording import Recording, info
 
     inf = info(path)
@@ -200,34 +256,19 @@ def _recording_figures(path: Path) -> dict[str, Any]:
         "duration_s": inf.duration_s,
     }
     with Recording(path) as rec:
-        meta = rec.metadata()
-        roles = {
-            v["serial"]: SyncMode(int(v["sync_mode"]))
-            for k, v in meta.items()
-            if k.startswith("device/d415/")
-        }
-        fi_topics = [t for t in rec.topics if t.startswith("/d415/") and t.endswith("/frame_info")]
+        roles = {}
+        for dev in d415_devices(rec):
+            mode = RecordedD415(rec, dev).settings().sync_mode
+            if mode is not None:
+                roles[dev.serial] = mode
         master_sensor_us: list[int] = []
         master = next((s for s, r in roles.items() if r is SyncMode.MASTER), None)
         if roles:
             checker = SyncChecker(roles, SyncCheckConfig(fps=30))
-            for m in rec.messages(fi_topics):
-                fi = m.decode()
-                serial = m.topic.split("/")[2]
-                checker.feed(
-                    serial,
-                    FrameTiming(
-                        frame_counter=fi.frame_counter,
-                        sensor_timestamp_us=fi.sensor_timestamp_us,
-                        frame_timestamp_us=fi.frame_timestamp_us,
-                        time_of_arrival_ms=fi.time_of_arrival_ms,
-                        timestamp_domain=TimestampDomain[fi.timestamp_domain],
-                        host_time_ns=fi.host_time_ns,
-                        timestamp_ms=fi.timestamp_ms,
-                    ),
-                )
-                if serial == master and fi.sensor_timestamp_us is not None:
-                    master_sensor_us.append(int(fi.sensor_timestamp_us))
+            for dev, timing in frame_timings(rec):
+                checker.feed(dev.serial, timing)
+                if dev.serial == master and timing.sensor_timestamp_us is not None:
+                    master_sensor_us.append(int(timing.sensor_timestamp_us))
             rep = checker.report()
             out["d415_cameras"] = len(roles)
             out["d415_frames"] = {s: c.frames for s, c in rep.cameras.items()}
@@ -235,16 +276,16 @@ def _recording_figures(path: Path) -> dict[str, Any]:
             out["d415_max_phase_error_us"] = max(
                 (c.max_phase_error_us or 0.0 for c in rep.cameras.values()), default=0.0
             )
-        davis = sorted({t.split("/")[2] for t in rec.topics if t.startswith("/davis/")})
-        if davis:
-            base = f"/davis/{davis[0]}"
-            tr = rec.triggers(f"{base}/trigger")
+        cams = davis_devices(rec)
+        if cams:
+            davis = RecordedDavis(rec, cams[0])
+            tr = davis.triggers()
             pulses = tr["t"][tr["type"] == SpecialType.EXTERNAL_INPUT_PULSE].astype(np.int64)
-            out["davis_events"] = int(rec.events(f"{base}/events").size)
-            out["davis_frames"] = sum(1 for _ in rec.messages(f"{base}/frame"))
-            out["davis_imu_samples"] = int(rec.imu(f"{base}/imu").size)
+            out["davis_events"] = int(davis.events().size)
+            out["davis_frames"] = davis.count("frame")
+            out["davis_imu_samples"] = int(davis.imu().size)
             out["davis_trigger_pulses"] = int(pulses.size)
-            out["davis_dvs"] = meta.get(f"settings/davis/{davis[0]}", {}).get("dvs.run")
+            out["davis_dvs"] = davis.settings().get("dvs.run")
             out.update(_pair_pulses(pulses, np.asarray(master_sensor_us, np.int64)))
     return out
 
@@ -492,6 +533,20 @@ def run_demo(
             figures["democap_replay"] = {"error": str(err)}
             stages["democap_replay"] = f"failed: {err}"
     timings["democap_replay_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    if calib_file is None:
+        figures["democap_live"] = {"error": "no calibration (the calibration stage failed)"}
+        stages["democap_live"] = "skipped: needs the calibration, whose stage failed"
+    else:
+        try:
+            figures["democap_live"] = _live_figures(sim, out, Path(calib_file), truth, cameras)
+            stages["democap_live"] = f"done ({LIVE_SECONDS:g} s of the mock rig)"
+        except MocaprigError as err:
+            _log.error("DeMoCap live stage failed: %s", err)
+            figures["democap_live"] = {"error": str(err)}
+            stages["democap_live"] = f"failed: {err}"
+    timings["democap_live_s"] = time.monotonic() - t0
 
     figure_path = out / "summary.png"
     _summary_figure(figure_path, sim, truth, traj, rec_figures)

@@ -319,14 +319,10 @@ def record_session(
         ValidationError: an unknown device, a bad camera count, ``syncbox`` without ``d415``.
         RecordingError: ``path`` exists, a device failed or something was dropped.
     """
-    from mocaprig.acquire.commands_record import (
-        DavisSource,
-        DepthCameraSource,
-        SyncBoxSource,
-        record_to_file,
-    )
     from mocaprig.acquire.davis240c import Davis240C
     from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.record_session import record_to_file
+    from mocaprig.acquire.record_sources import DavisSource, DepthCameraSource, SyncBoxSource
     from mocaprig.acquire.recorder import StreamSource
     from mocaprig.acquire.syncbox import SyncBox
     from mocaprig.drivers_mock.davis240c_sim import DavisSimulator

@@ -15,7 +15,12 @@ from __future__ import annotations
 
 from mocaprig.errors import (
     CalibrationError,
+    DeviceBusyError,
+    DeviceDisconnectedError,
     DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
     MocaprigError,
     ProcessingError,
     RecordingError,
@@ -24,7 +29,12 @@ from mocaprig.errors import (
 
 __all__ = [
     "CalibrationError",
+    "DeviceBusyError",
+    "DeviceDisconnectedError",
     "DeviceError",
+    "DeviceNotFoundError",
+    "DevicePermissionError",
+    "DeviceTimeoutError",
     "MocaprigError",
     "ProcessingError",
     "RecordingError",

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from mocaprig.calib.calibration import Calibration
+from mocaprig.drivers_mock.truth import Truth
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -25,3 +29,35 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=False,
         help="run the device-contract tests against real hardware too (DAVIS240C on USB)",
     )
+
+
+@dataclass(frozen=True)
+class CalibratedSession:
+    """A simulated session recorded through the drivers and calibrated against its Vicon trial."""
+
+    root: Path
+    session: Path
+    calib: Path
+    calibration: Calibration
+    truth: Truth
+    seed: int
+    seconds: float
+
+
+@pytest.fixture(scope="session")
+def calibrated_session(tmp_path_factory: pytest.TempPathFactory) -> CalibratedSession:
+    """One 4 s session (seed 5, four D415s, no DAVIS: the rig DeMoCap is trained for), its
+    calibration and truth, shared by every test that needs a calibrated recording (~30 s once).
+    The mock cameras of the same seed and length (``open_cameras("mock", seed=5, seconds=4)``)
+    see the same world, so the calibration and truth serve a live run on them too."""
+    from mocaprig.calib.calibration import write_calibration
+    from mocaprig.calib.vicon_calibration import calibrate_vicon
+    from mocaprig.drivers_mock import simulate_session
+    from mocaprig.drivers_mock.truth import read_truth
+
+    root = tmp_path_factory.mktemp("calibrated-session")
+    sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
+    session = sim.out_dir / "session.mcap"
+    cal = calibrate_vicon(session, sim.c3d_path).calibration
+    calib = write_calibration(cal, root / "calib.toml")
+    return CalibratedSession(root, session, calib, cal, read_truth(sim.out_dir), 5, 4.0)

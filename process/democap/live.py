@@ -1,9 +1,11 @@
 """Live DeMoCap: one synchronised set of D415 IR + depth frames -> labelled markers + joints.
 
-:class:`LivePipeline` takes, per rig instant, one ``(IR, depth)`` pair per camera (the frames
-of the hardware-synchronised D415s that exposed together) and runs the replay's stages
-(:mod:`mocaprig.process.democap.replay`) on them, with the same functions and parameters so live and
-replay give the same clouds:
+:class:`LivePipeline` takes, per rig instant, one frame per camera (the frames of the
+hardware-synchronised D415s that exposed together): the driver's
+:class:`~acquire.depth_camera.FrameSet`, as a live camera's ``poll()`` or a recording's
+:func:`~acquire.device_streams.read_frame_sets` gives it, or bare ``(IR, depth)`` images. The
+replay (:mod:`mocaprig.process.democap.replay`) is this pipeline fed from a recording, so live and
+replay are one path:
 
 1. **measure**, per camera (:func:`mocaprig.calib.markers.measure_frame`): IR blobs, robust depth,
    deprojection into the camera frame;
@@ -49,6 +51,8 @@ from typing import Final, Protocol, TypeAlias, cast
 import numpy as np
 import numpy.typing as npt
 
+from mocaprig.acquire.depth_camera import FrameSet
+from mocaprig.acquire.device_id import DeviceId
 from mocaprig.calib.calibration import Calibration, cameras_of_kind
 from mocaprig.calib.markers import (
     DEFAULT_MAX_AREA_PX,
@@ -71,12 +75,13 @@ __all__ = [
     "DEFAULT_MERGE_RADIUS_M",
     "DEFAULT_WORKERS",
     "LIVE_ROTATIONS",
+    "CameraFrame",
     "CloudPredictor",
     "FramePair",
-    "FrameSet",
     "LiveCamera",
     "LivePipeline",
     "LiveResult",
+    "RigFrames",
     "cameras_from_calibration",
     "live_predictor",
 ]
@@ -85,7 +90,8 @@ _log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
-_Pair = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16]]
+# (ir, depth, metres per depth unit) of one camera, validated.
+_Pair = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16], float]
 
 #: The replay's merge radius (m).
 DEFAULT_MERGE_RADIUS_M: Final = 0.010
@@ -103,11 +109,25 @@ _JOIN_TIMEOUT_S: Final = 10.0
 #: How often a producer blocked on a full queue checks whether it should stop (s).
 _POLL_S: Final = 0.05
 
-#: One camera's frame: ``(ir (H, W) uint8, depth (H, W) uint16)``.
+#: One camera's frame as bare images: ``(ir (H, W) uint8, depth (H, W) uint16)``.
 FramePair: TypeAlias = tuple[npt.ArrayLike, npt.ArrayLike]
-#: One rig instant: a pair per camera in the pipeline's camera order, or by camera name;
-#: ``None`` for a camera whose frame was dropped.
-FrameSet: TypeAlias = Sequence[FramePair | None] | Mapping[str, FramePair | None]
+#: One camera's frame: the driver's :class:`~acquire.depth_camera.FrameSet` (what a camera's
+#: ``poll()`` and a recording's :func:`~acquire.device_streams.read_frame_sets` give; its own
+#: depth scale is used) or bare images; ``None`` for a camera whose frame was dropped.
+CameraFrame: TypeAlias = FrameSet | FramePair | None
+#: One rig instant: a frame per camera in the pipeline's camera order, or by camera name.
+RigFrames: TypeAlias = Sequence[CameraFrame] | Mapping[str, CameraFrame]
+
+
+def _check_serial(camera: str, serial: str) -> None:
+    """A frame set of D415 ``serial`` must not feed the pipeline camera of another serial."""
+    try:
+        dev = DeviceId.parse(camera)
+    except ValidationError:
+        return  # a camera named freely (not ``d415/<serial>``): nothing to compare
+    if dev.kind == "d415" and dev.serial != serial:
+        msg = f"camera {camera!r} was given a frame set of D415 {serial!r}"
+        raise ValidationError(msg)
 
 
 class CloudPredictor(Protocol):
@@ -197,18 +217,25 @@ class LiveCamera:
 
     @classmethod
     def from_calibration(
-        cls, calibration: Calibration, key: str, *, depth_scale_m: float = 0.001
+        cls,
+        calibration: Calibration,
+        key: str,
+        *,
+        depth_scale_m: float = 0.001,
+        K: npt.ArrayLike | None = None,
+        distortion: npt.ArrayLike | None = None,
     ) -> LiveCamera:
-        """The camera ``key`` (name or serial) of a calibration (its K, distortion, pose and
-        image size); the depth scale is not in a calibration, so it is given.
+        """The camera ``key`` (name or serial) of a calibration: its pose and image size, and
+        its K and distortion unless the camera's own are given; the depth scale is not in a
+        calibration, so it is given.
 
-        The replay takes K and the distortion from the recording's ``camera_info`` and the
-        pose from the calibration; these agree when the calibration's intrinsics are the
-        cameras' factory ones (what ``mocaprig calibrate vicon`` writes).
+        The replay and ``democap live`` pass the camera's own intrinsics (its recorded
+        ``camera_info`` or ``intrinsics()``) with the calibrated pose; these agree with the
+        calibration's when they are the factory ones (what ``mocaprig calibrate vicon`` writes).
 
         Raises:
             CalibrationError: no such camera, or it is not a D415.
-            ValidationError: bad ``depth_scale_m``.
+            ValidationError: bad ``depth_scale_m``, ``K`` or ``distortion``.
         """
         cam = calibration.camera(key)
         if cam.kind != "d415":
@@ -216,9 +243,11 @@ class LiveCamera:
             raise CalibrationError(msg)
         return cls(
             name=cam.name,
-            K=cam.K,
+            K=cam.K if K is None else np.asarray(K, dtype=np.float64),
             T_world_cam=cam.T_world_cam,
-            distortion=cam.distortion,
+            distortion=cam.distortion
+            if distortion is None
+            else np.asarray(distortion, dtype=np.float64),
             depth_scale_m=depth_scale_m,
             width=cam.width,
             height=cam.height,
@@ -467,10 +496,19 @@ class LivePipeline:
                 out.append(None)
                 continue
             what = f"camera {cam.name!r}"
-            if not isinstance(item, (tuple, list)) or len(item) != 2:
-                msg = f"{what}: expected an (IR, depth) pair, got {type(item).__name__}"
+            scale = cam.depth_scale_m
+            if isinstance(item, FrameSet):
+                _check_serial(cam.name, item.serial)
+                ir, depth = item.infrared.image, item.depth.image
+                scale = item.depth_scale_m
+            elif not isinstance(item, (tuple, list)) or len(item) != 2:
+                msg = (
+                    f"{what}: expected an (IR, depth) pair or the driver's FrameSet, "
+                    f"got {type(item).__name__}"
+                )
                 raise ValidationError(msg)
-            ir, depth = np.asarray(item[0]), np.asarray(item[1])
+            else:
+                ir, depth = np.asarray(item[0]), np.asarray(item[1])
             if ir.ndim != 2 or ir.dtype != np.uint8:
                 msg = (
                     f"{what}: the IR image must be 2-D uint8 (Y8), got shape {ir.shape} "
@@ -489,7 +527,7 @@ class LivePipeline:
                     f"calibrated at {cam.width}×{cam.height}"
                 )
                 raise ValidationError(msg)
-            out.append((ir, depth))
+            out.append((ir, depth, scale))
         return out
 
     def _measure_cams(
@@ -509,7 +547,7 @@ class LivePipeline:
                 pair[0],
                 pair[1],
                 cam.K,
-                depth_scale_m=cam.depth_scale_m,
+                depth_scale_m=pair[2],
                 camera=cam.name,
                 distortion=cam.distortion,
                 **self._measure_kw,
@@ -517,7 +555,7 @@ class LivePipeline:
             out.append((i, mf, time.perf_counter() - t0))
         return out
 
-    def _measure(self, frames: FrameSet, index: int) -> _Measured:
+    def _measure(self, frames: RigFrames, index: int) -> _Measured:
         """Stage 1: validate, measure every camera, world + crop + merge."""
         t_start = time.perf_counter()
         pairs = self._pairs(frames)
@@ -576,14 +614,15 @@ class LivePipeline:
 
     # -- public ---------------------------------------------------------------------------
 
-    def process(self, frames: FrameSet) -> LiveResult:
+    def process(self, frames: RigFrames) -> LiveResult:
         """One frame set -> its :class:`LiveResult` (both stages in the calling thread, the
         cameras spread over ``workers`` threads).
 
         Args:
-            frames: One ``(ir (H, W) uint8, depth (H, W) uint16)`` pair per camera, in the
-                pipeline's camera order (or a mapping camera name -> pair); None for a camera
-                whose frame was dropped.
+            frames: One frame per camera, in the pipeline's camera order (or a mapping camera
+                name -> frame): the driver's :class:`~acquire.depth_camera.FrameSet` or an
+                ``(ir (H, W) uint8, depth (H, W) uint16)`` pair; None for a camera whose frame
+                was dropped.
 
         Raises:
             ValidationError: the wrong number of pairs or cameras, or a wrong image shape or
@@ -593,7 +632,7 @@ class LivePipeline:
         self._check_open()
         return self._predict(self._measure(frames, 0))
 
-    def stream(self, frame_sets: Iterable[FrameSet]) -> Iterator[LiveResult]:
+    def stream(self, frame_sets: Iterable[RigFrames]) -> Iterator[LiveResult]:
         """Frame sets -> their :class:`LiveResult`, in order, as a two-stage pipeline.
 
         A producer thread takes the sets from ``frame_sets`` and measures + merges them
@@ -611,7 +650,7 @@ class LivePipeline:
         self._check_open()
         return self._stream(iter(frame_sets))
 
-    def _stream(self, source: Iterator[FrameSet]) -> Iterator[LiveResult]:
+    def _stream(self, source: Iterator[RigFrames]) -> Iterator[LiveResult]:
         q: queue.Queue[object] = queue.Queue(maxsize=self.queue_size)
         stop = threading.Event()
         with self._lock:

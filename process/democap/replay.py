@@ -3,21 +3,22 @@
 :func:`run_replay` takes a recording (``mocaprig record`` / ``simulate``) and its calibration
 (``mocaprig calibrate vicon``) and:
 
-1. lists every D415 frame's device time (:func:`calib.markers.frame_times`, no image decoded)
+1. lists every D415 frame's device time (:meth:`~acquire.device_streams.RecordedD415.frame_index`,
+   no image decoded)
    and maps it onto the calibration's reference clock with that camera's
    :class:`~mocaprig.calib.calibration.ClockMapping`;
-2. groups the frames into **rig instants** (:func:`group_instants`): the D415s are hardware
-   synchronised (the slaves expose on the master's pulses), so the frames of one instant agree
-   on the reference clock to the calibration's accuracy (≈ 1 ms); frames closer than
-   ``tolerance`` × the median frame period (¼ by default) to the instant's first frame join it,
-   one per camera. An instant seen by fewer cameras (a dropped frame) is still processed;
-3. keeps every ``every``-th instant and measures only its frames
-   (:func:`mocaprig.calib.markers.measure_recording`: IR blobs, depth, deprojection);
-4. per instant: camera -> world (:func:`calib.markers.to_world`), the capture-box crop of the
-   training data (:data:`DEFAULT_CROP_BOX_M`), the 10 mm merge of the views
-   (:func:`mocaprig.calib.markers.merge_views`);
-5. runs the clouds through :class:`~mocaprig.process.democap.infer.DemocapPredictor` in batches
-   (instants whose cloud has fewer than 2 points are skipped and counted);
+2. groups the frames into **rig instants** (:func:`~.instants.group_instants`, the rule of
+   :mod:`mocaprig.process.democap.instants`: frames closer than ``tolerance`` × the median frame
+   period, ¼ by default, to the instant's first frame join it, one per camera; an instant seen
+   by fewer cameras, a dropped frame, is still processed);
+3. keeps every ``every``-th instant and reads only its frames, as the driver's
+   :class:`~acquire.depth_camera.FrameSet` (:func:`~acquire.device_streams.read_frame_sets`);
+4. feeds them to :class:`~mocaprig.process.democap.live.LivePipeline`, the live path itself:
+   per camera IR blobs, depth, deprojection (:func:`calib.markers.measure_frame`, the
+   camera's recorded ``camera_info`` intrinsics), camera -> world with the calibrated pose, the
+   capture-box crop of the training data (:data:`DEFAULT_CROP_BOX_M`), the 10 mm merge of the
+   views, then :class:`~mocaprig.process.democap.infer.DemocapPredictor` (instants whose cloud
+   has fewer than 2 points are skipped and counted);
 6. writes the results (:func:`write_scene_mcap`, :func:`write_replay_c3d`,
    :func:`write_replay_csv`).
 
@@ -47,19 +48,37 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Final, NamedTuple
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
 
+from mocaprig.acquire.depth_camera import FrameSet
+from mocaprig.acquire.device_id import DeviceId
+from mocaprig.acquire.device_streams import (
+    D415FrameIndex,
+    RecordedD415,
+    d415_devices,
+    read_frame_sets,
+)
+from mocaprig.acquire.recorder import Attachment, Recorder
+from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.recording_format import SceneUpdateMsg
 from mocaprig.calib.calibration import Calibration, read_calibration
-from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
+from mocaprig.errors import CalibrationError, ProcessingError, RecordingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
 from mocaprig.process.democap.evaluate import EVAL_JOINTS
 from mocaprig.process.democap.infer import DemocapPredictor, Prediction
+from mocaprig.process.democap.instants import (
+    INSTANT_TOLERANCE,
+    Grouping,
+    Instant,
+    group_instants,
+)
+from mocaprig.process.democap.live import LiveCamera, LivePipeline
 from mocaprig.process.democap.simdata import CAPTURE_BOX_M
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
 
@@ -76,8 +95,10 @@ __all__ = [
     "ReplayResult",
     "default_outputs",
     "group_instants",
+    "marker_scene",
     "run_replay",
     "score_replay",
+    "skeleton_scene",
     "write_replay_c3d",
     "write_replay_csv",
     "write_scene_mcap",
@@ -95,110 +116,10 @@ CLOUD_TOPIC: Final = "/democap/cloud"
 METADATA_NAME: Final = "democap_replay"
 #: Prefix of the joint labels in the C3D and the CSV (``J_Hips``...).
 JOINT_LABEL_PREFIX: Final = "J_"
-#: Frames within this fraction of the median frame period of an instant's first frame join it.
-INSTANT_TOLERANCE: Final = 0.25
 #: The capture box of the training data (world, m): ``((x0, x1), (y0, y1), (z0, z1))``.
 DEFAULT_CROP_BOX_M: Final = CAPTURE_BOX_M
-#: Frame period assumed when no camera has two frames (30 Hz).
-_NOMINAL_PERIOD_NS: Final = 33_333_333
 
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
-
-
-# ------------------------------------------------------------------------------ instants
-
-
-@dataclass(frozen=True, slots=True)
-class Instant:
-    """One rig instant: the frames of the cameras that exposed together.
-
-    Attributes:
-        t_ref_ns: Mean reference time of its frames (ns, calibration's reference clock).
-        frames: Camera label -> device time of its frame (ns, the camera's own clock).
-    """
-
-    t_ref_ns: int
-    frames: Mapping[str, int]
-
-
-class Grouping(NamedTuple):
-    """What :func:`group_instants` returns."""
-
-    instants: tuple[Instant, ...]
-    period_ns: int
-    """Median frame period on the reference clock (ns)."""
-
-
-def group_instants(
-    t_dev_ns: Mapping[str, npt.ArrayLike],
-    t_ref_ns: Mapping[str, npt.ArrayLike],
-    *,
-    tolerance: float = INSTANT_TOLERANCE,
-) -> Grouping:
-    """Group the frames of hardware-synchronised cameras into instants.
-
-    Frames are taken in reference-time order; a frame joins the open instant when it lies
-    within ``tolerance`` × the median frame period of that instant's first frame and its camera
-    is not in it yet, otherwise it opens a new instant.
-
-    Args:
-        t_dev_ns: Per camera, the device times of its frames (ns).
-        t_ref_ns: Per camera, the same frames on the reference clock (ns), same shape.
-        tolerance: Fraction of the median frame period (0 < tolerance < 0.5).
-
-    Returns:
-        The instants in time order and the median frame period (ns; 30 Hz when no camera has
-        two frames).
-
-    Raises:
-        ValidationError: mismatched cameras or shapes, or ``tolerance`` out of range.
-    """
-    if not 0.0 < float(tolerance) < 0.5:
-        msg = f"tolerance must lie in (0, 0.5) frame periods, got {tolerance!r}"
-        raise ValidationError(msg)
-    if set(t_dev_ns) != set(t_ref_ns):
-        msg = (
-            "t_dev_ns and t_ref_ns must have the same cameras: "
-            f"{sorted(t_dev_ns)} vs {sorted(t_ref_ns)}"
-        )
-        raise ValidationError(msg)
-    cams = sorted(t_dev_ns)
-    dev = {c: np.asarray(t_dev_ns[c], dtype=np.int64).reshape(-1) for c in cams}
-    ref = {c: np.asarray(t_ref_ns[c], dtype=np.int64).reshape(-1) for c in cams}
-    for c in cams:
-        if dev[c].shape != ref[c].shape:
-            msg = f"{c}: {dev[c].size} device times but {ref[c].size} reference times"
-            raise ValidationError(msg)
-    steps = [np.diff(np.sort(ref[c])) for c in cams if ref[c].size > 1]
-    period = int(np.median(np.concatenate(steps))) if steps else _NOMINAL_PERIOD_NS
-    if period <= 0:
-        msg = f"the frames' reference times do not advance (median period {period} ns)"
-        raise ValidationError(msg)
-    tol = float(tolerance) * period
-    empty = np.zeros(0, np.int64)
-    t_all = np.concatenate([empty, *(ref[c] for c in cams)])
-    cam_all = np.concatenate([empty, *(np.full(ref[c].size, i) for i, c in enumerate(cams))])
-    dev_all = np.concatenate([empty, *(dev[c] for c in cams)])
-    order = np.lexsort((cam_all, t_all))
-    instants: list[Instant] = []
-    first = 0
-    members: dict[str, tuple[int, int]] = {}  # camera -> (t_dev, t_ref)
-
-    def close() -> None:
-        if members:
-            t_mean = round(float(np.mean([r for _, r in members.values()])))
-            instants.append(Instant(t_mean, {c: d for c, (d, _) in sorted(members.items())}))
-
-    for k in order:
-        t, cam, d = int(t_all[k]), cams[int(cam_all[k])], int(dev_all[k])
-        if members and t - first <= tol and cam not in members:
-            members[cam] = (d, t)
-            continue
-        close()
-        members = {cam: (d, t)}
-        first = t
-    close()
-    return Grouping(tuple(instants), period)
 
 
 # ------------------------------------------------------------------------------ result
@@ -407,7 +328,7 @@ def run_replay(
             every point. Default: the capture box of the training data.
         merge_radius_m: Views' points closer than this are merged (m).
         tolerance: Instant grouping tolerance (fraction of the frame period).
-        batch: Instants per network batch.
+        batch: Measured instants held ready for the network (the live pipeline's queue).
         progress: Optional ``(done, total)`` callback over the instants (the marker measurement
             draws its own bar on stderr when this is given).
 
@@ -424,14 +345,6 @@ def run_replay(
             recording has no ``camera_info`` (intrinsics).
         RecordingError: the recording is unreadable.
     """
-    from mocaprig.acquire.recording import Recording
-    from mocaprig.calib.markers import (
-        crop_volume,
-        frame_times,
-        measure_recording,
-        merge_views,
-        to_world,
-    )
 
     t_start = time.monotonic()
     if isinstance(every, bool) or int(every) != every or every < 1:
@@ -466,12 +379,19 @@ def run_replay(
             msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
             raise ValidationError(msg)
 
+    pred = predictor if predictor is not None else DemocapPredictor()
     with Recording(session_path) as rec:
-        t_dev = frame_times(rec)
-        if not t_dev:
+        d415 = {d.label: RecordedD415(rec, d) for d in d415_devices(rec)}
+        if not d415:
             msg = f"{session_path}: no D415 stream in the recording; nothing to replay"
             raise ProcessingError(msg)
-        cameras = tuple(sorted(t_dev))
+        cameras = tuple(sorted(d415))
+        try:
+            index = {c: d415[c].frame_index() for c in cameras}
+            intrinsics = {c: d415[c].intrinsics() for c in cameras}
+        except RecordingError as err:
+            raise CalibrationError(str(err)) from err
+        t_dev = {c: np.sort(index[c].t_dev_ns) for c in cameras}
         _check_calibrated(cal, cameras, session_path, cal_source)
         t_ref = {c: cal.clock(c).to_reference_ns(t_dev[c]) for c in cameras}
         grouping = group_instants(t_dev, t_ref, tolerance=tolerance)
@@ -485,33 +405,41 @@ def run_replay(
             len(selected),
             every,
         )
-        wanted: dict[str, list[int]] = {c: [] for c in cameras}
-        for inst in selected:
-            for c, d in inst.frames.items():
-                wanted[c].append(d)
-        t0 = time.monotonic()
-        measured = measure_recording(rec, frames_t_dev_ns=wanted, progress=progress is not None)
-        t_measure = time.monotonic() - t0
-
-    by_time = {c: {f.t_dev_ns: f for f in frames} for c, frames in measured.items()}
-    poses = {c: cal.camera(c).T_world_cam for c in cameras}
-    clouds: list[F64] = []
-    kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
-    skipped = 0
-    for inst in selected:
-        views = []
-        for c, d in inst.frames.items():
-            f = by_time.get(c, {}).get(d)
-            if f is None:
-                continue
-            p = to_world(f.xyz_cam_m, poses[c])
-            views.append(p if box is None else crop_volume(p, box[:, 0], box[:, 1]))
-        cloud = merge_views(views, radius_m=merge_radius_m)
-        if cloud.shape[0] < 2:
-            skipped += 1
-            continue
-        clouds.append(cloud)
-        kept.append((inst.t_ref_ns, len(views)))
+        # The camera's own intrinsics (camera_info) and the calibrated pose.
+        live_cams = [
+            LiveCamera.from_calibration(
+                cal,
+                c,
+                K=intrinsics[c].k,
+                distortion=intrinsics[c].distortion,
+                depth_scale_m=index[c].depth_scale_m,
+            )
+            for c in cameras
+        ]
+        clouds: list[F64] = []
+        preds: list[Prediction] = []
+        kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
+        skipped = 0
+        t_measure = t_network = 0.0
+        with LivePipeline(
+            pred,
+            live_cams,
+            crop_box_m=crop_box_m,
+            merge_radius_m=merge_radius_m,
+            queue_size=max(2, int(batch)),
+        ) as pipeline:
+            frames = _instant_frames(rec, index, selected)
+            for inst, res in zip(selected, pipeline.stream(frames), strict=True):
+                t_measure += (res.timings_ms["measure_ms"] + res.timings_ms["merge_ms"]) / 1e3
+                t_network += res.timings_ms["predict_ms"] / 1e3
+                if res.prediction is None:
+                    skipped += 1
+                else:
+                    clouds.append(res.cloud_m)
+                    preds.append(res.prediction)
+                    kept.append((inst.t_ref_ns, res.cameras_used))
+                if progress is not None:
+                    progress(len(kept) + skipped, len(selected))
     if skipped:
         _log.warning("%s: %d instants skipped (fewer than 2 points)", session_path, skipped)
     if not clouds:
@@ -520,15 +448,6 @@ def run_replay(
             "after the merge; are the markers lit and inside the capture box?"
         )
         raise ProcessingError(msg)
-
-    pred = predictor if predictor is not None else DemocapPredictor()
-    t0 = time.monotonic()
-    preds: list[Prediction] = []
-    for k in range(0, len(clouds), int(batch)):
-        preds.extend(pred.predict_many(clouds[k : k + int(batch)]))
-        if progress is not None:
-            progress(len(preds), len(clouds))
-    t_network = time.monotonic() - t0
 
     ck = pred.checkpoint
     result = ReplayResult(
@@ -571,6 +490,56 @@ def run_replay(
         timings["total_s"],
     )
     return result
+
+
+def _instant_frames(
+    rec: Recording,
+    index: Mapping[str, D415FrameIndex],
+    instants: Sequence[Instant],
+) -> Iterator[dict[str, FrameSet | None]]:
+    """The recording's frame sets of each instant, by camera (None: not in the file), in
+    instant order, read in one pass over the file (only the frames of ``instants`` decoded)."""
+    seq_of = {
+        c: dict(zip(ix.t_dev_ns.tolist(), ix.sequence.tolist(), strict=True))
+        for c, ix in index.items()
+    }
+    devices = {c: ix.device for c, ix in index.items()}
+    slot: dict[tuple[str, int], int] = {}
+    wanted: dict[DeviceId, set[int]] = {d: set() for d in devices.values()}
+    logs: list[int] = []
+    log_of = {
+        c: dict(zip(ix.sequence.tolist(), ix.log_time_ns.tolist(), strict=True))
+        for c, ix in index.items()
+    }
+    for k, inst in enumerate(instants):
+        for c, d in inst.frames.items():
+            seq = seq_of[c][d]
+            slot[devices[c].serial, seq] = k
+            wanted[devices[c]].add(seq)
+            logs.append(log_of[c][seq])
+    need = [len(inst.frames) for inst in instants]
+    got: dict[int, dict[str, FrameSet]] = {}
+    label = {d.serial: c for c, d in devices.items()}
+    nxt = 0
+
+    def take(k: int) -> dict[str, FrameSet | None]:
+        have = got.pop(k, {})
+        return {c: have.get(c) for c in index}
+
+    if logs:
+        for rfs in read_frame_sets(
+            rec, sorted(wanted), start_ns=min(logs), end_ns=max(logs) + 1, sequences=wanted
+        ):
+            pos = slot.get((rfs.frames.serial, rfs.sequence))
+            if pos is None:
+                continue
+            got.setdefault(pos, {})[label[rfs.frames.serial]] = rfs.frames
+            while nxt < len(instants) and len(got.get(nxt, {})) == need[nxt]:
+                yield take(nxt)
+                nxt += 1
+    while nxt < len(instants):  # frames missing from the file: what there is
+        yield take(nxt)
+        nxt += 1
 
 
 # ------------------------------------------------------------------------------ writers
@@ -651,14 +620,6 @@ def write_replay_c3d(result: ReplayResult, path: str | Path, *, overwrite: bool 
     return write_c3d(path, traj, unit="mm", overwrite=overwrite)
 
 
-def _scene_schema() -> tuple[str, bytes]:
-    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-    from mcap_protobuf.schema import build_file_descriptor_set
-
-    data: bytes = build_file_descriptor_set(SceneUpdate).SerializeToString()
-    return SceneUpdate.DESCRIPTOR.full_name, data
-
-
 _MARKER_RGBA: Final = (1.0, 0.55, 0.1, 1.0)
 _JOINT_RGBA: Final = (0.2, 0.5, 1.0, 1.0)
 _BONE_RGBA: Final = (0.9, 0.9, 0.9, 1.0)
@@ -676,7 +637,8 @@ def _scene(
     *,
     names: Sequence[str] = (),
     bones: Sequence[tuple[int, int]] = (),
-) -> bytes:
+) -> SceneUpdateMsg:
+    """One entity of spheres (and labels, bones) as a ``foxglove.SceneUpdate``."""
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
@@ -714,8 +676,29 @@ def _scene(
             for q in (points_m[a], points_m[b]):
                 pt = ln.points.add()
                 pt.x, pt.y, pt.z = (float(v) for v in q)
-    data: bytes = upd.SerializeToString()
-    return data
+    return SceneUpdateMsg(upd)
+
+
+def marker_scene(
+    frame_id: str, t_ns: int, markers_m: F64, info: Mapping[str, str]
+) -> SceneUpdateMsg:
+    """The labelled markers of one instant, ``(53, 3)`` world m, as a scene update (14 mm
+    spheres; ``names`` in the metadata, in sphere order)."""
+    meta = {"names": ",".join(MARKER_NAMES), **info}
+    return _scene("markers", frame_id, t_ns, markers_m, 0.014, _MARKER_RGBA, meta)
+
+
+def skeleton_scene(
+    frame_id: str, t_ns: int, joints_m: F64, info: Mapping[str, str]
+) -> SceneUpdateMsg:
+    """The joints of one instant, ``(19, 3)`` world m, as a scene update: 30 mm spheres, a text
+    label per joint and the bones as one line list."""
+    bones = [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
+    meta = {"names": ",".join(DEMOCAP_JOINTS), **info}
+    joints = list(DEMOCAP_JOINTS)
+    return _scene(
+        "skeleton", frame_id, t_ns, joints_m, 0.03, _JOINT_RGBA, meta, names=joints, bones=bones
+    )
 
 
 def write_scene_mcap(
@@ -739,10 +722,6 @@ def write_scene_mcap(
     Raises:
         ProcessingError: ``path`` exists and ``overwrite`` is False, or the write failed.
     """
-    from mcap.writer import CompressionType, Writer
-
-    from mocaprig import __version__
-    from mocaprig.acquire.recording_format import PROFILE
     from mocaprig.calib.calibration import calibration_bytes
 
     dst = Path(path)
@@ -752,77 +731,61 @@ def write_scene_mcap(
     if clouds is not None and len(clouds) != result.instants:
         msg = f"clouds has {len(clouds)} entries for {result.instants} instants"
         raise ValidationError(msg)
-    schema_name, schema_data = _scene_schema()
     markers, joints = list(MARKER_NAMES), list(DEMOCAP_JOINTS)
-    bones = [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
+    [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
     frame = result.world_frame
+    attachments = []
+    if calibration is not None:
+        attachments.append(
+            Attachment("calibration.toml", "application/toml", calibration_bytes(calibration))
+        )
+    # The recorder's own diagnostics are stamped on the results' clock (the reference clock),
+    # so the whole file has one time base.
+    now = [int(result.t_ref_ns[0]) if result.instants else 0]
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.part")
     try:
-        with tmp.open("wb") as fh:
-            w = Writer(fh, compression=CompressionType.LZ4)
-            w.start(profile=PROFILE, library=f"mocaprig {__version__}")
-            sid = w.register_schema(schema_name, "protobuf", schema_data)
+        with Recorder(
+            tmp,
+            metadata={METADATA_NAME: _metadata(result)},
+            attachments=attachments,
+            clock_ns=lambda: now[0],
+            min_free_disk_bytes=0,
+        ) as rec:
             meta = {"frame_id": frame, "units": "m", "log_time": f"{result.reference_clock} ns"}
-            ch_m = w.register_channel(
-                MARKERS_TOPIC, "protobuf", sid, {**meta, "content": "markers"}
-            )
-            ch_j = w.register_channel(JOINTS_TOPIC, "protobuf", sid, {**meta, "content": "joints"})
-            ch_c = (
-                None
-                if clouds is None
-                else w.register_channel(CLOUD_TOPIC, "protobuf", sid, {**meta, "content": "cloud"})
-            )
-            w.add_metadata(METADATA_NAME, _metadata(result))
-            if calibration is not None:
-                now = time.time_ns()
-                w.add_attachment(
-                    create_time=now,
-                    log_time=now,
-                    name="calibration.toml",
-                    media_type="application/toml",
-                    data=calibration_bytes(calibration),
-                )
-            names_m, names_j = ",".join(markers), ",".join(joints)
+            queue = max(16, result.instants)
+            h = {}
+            for topic, content in (
+                (MARKERS_TOPIC, "markers"),
+                (JOINTS_TOPIC, "joints"),
+                (CLOUD_TOPIC, "cloud"),
+            ):
+                if content != "cloud" or clouds is not None:
+                    h[content] = rec.add_stream(
+                        topic,
+                        SceneUpdateMsg,
+                        metadata={**meta, "content": content},
+                        queue_messages=queue,
+                        queue_bytes=1 << 30,
+                    )
+            _names_m, _names_j = ",".join(markers), ",".join(joints)
             for i in range(result.instants):
                 t = int(result.t_ref_ns[i])
+                now[0] = t
                 info = {
                     "cameras": str(int(result.cameras_per_instant[i])),
                     "points": str(int(result.points_per_instant[i])),
                 }
                 msgs = [
-                    (
-                        ch_m,
-                        _scene(
-                            "markers",
-                            frame,
-                            t,
-                            result.markers_m[i],
-                            0.014,
-                            _MARKER_RGBA,
-                            {"names": names_m, **info},
-                        ),
-                    ),
-                    (
-                        ch_j,
-                        _scene(
-                            "skeleton",
-                            frame,
-                            t,
-                            result.joints_m[i],
-                            0.03,
-                            _JOINT_RGBA,
-                            {"names": names_j, **info},
-                            names=joints,
-                            bones=bones,
-                        ),
-                    ),
+                    (h["markers"], marker_scene(frame, t, result.markers_m[i], info)),
+                    (h["joints"], skeleton_scene(frame, t, result.joints_m[i], info)),
                 ]
-                if ch_c is not None and clouds is not None:
+                if clouds is not None:
                     pts = np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3)
-                    msgs.append((ch_c, _scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info)))
-                for ch, data in msgs:
-                    w.add_message(channel_id=ch, log_time=t, publish_time=t, data=data, sequence=i)
-            w.finish()  # type: ignore[no-untyped-call]
+                    msgs.append(
+                        (h["cloud"], _scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info))
+                    )
+                for handle, scene in msgs:
+                    rec.put_wait(handle, scene, log_time_ns=t, sequence=i)
         _replace_atomically(tmp, dst, overwrite)
     except ProcessingError:
         raise

@@ -45,10 +45,11 @@ instants of two 30 s sessions, 4 D415s, true camera poses, checked on 599; docs/
   projected area), kept when the line of sight is clear; and per sample a Poisson number
   (:data:`REFLECTORS_MEAN`) of static reflective objects 0.5–1.2 m from the actor at 0.9–1.6 m
   height (the simulated world's clapperboard markers), seen by every camera like a marker.
-* **fusion** (:func:`merge_views`): union of the views, points outside the capture box dropped,
-  then points closer than 10 mm merged, single linkage over all points (as
-  :func:`calib.markers.merge_views` in the replay). Most markers seen by two cameras stay two
-  points: their depth errors point along different rays.
+* **fusion** (:func:`merge_views`): the replay's own code: each view cropped to the capture box
+  (:func:`calib.markers.crop_volume`), then :func:`calib.markers.merge_views` (points closer
+  than 10 mm merged, single linkage over all points; NaN rows dropped; clusters in order of
+  their first point). Most markers seen by two cameras stay two points: their depth errors
+  point along different rays.
 
 Everything is deterministic for a ``numpy.random.Generator``.
 """
@@ -59,11 +60,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from mocaprig.calib import markers as calib_markers
 from mocaprig.errors import ValidationError
 from mocaprig.process.body import (
     BodyShape,
@@ -558,20 +557,14 @@ def observe(
 
 
 def merge_views(views: list[FloatArray], *, radius_m: float = MERGE_RADIUS_M) -> FloatArray:
-    """Fuse per-camera points (world, m) as the replay does: drop points outside the capture
-    box, then merge points closer than ``radius_m`` (single linkage over all points, any view;
-    connected components, averaged)."""
-    pts = [np.asarray(v, np.float64).reshape(-1, 3) for v in views]
-    p = np.concatenate(pts) if pts else np.zeros((0, 3))
-    box = np.array(CAPTURE_BOX_M)
-    keep = np.all((p >= box[:, 0]) & (p <= box[:, 1]), axis=1)
-    p = p[keep]
-    if p.shape[0] < 2:
-        return p
-    pairs = cKDTree(p).query_pairs(radius_m, output_type="ndarray")
-    n = p.shape[0]
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    count, label = connected_components(g, directed=False)
-    sums = np.zeros((count, 3))
-    np.add.at(sums, label, p)
-    return sums / np.bincount(label, minlength=count)[:, None]
+    """Fuse per-camera points (world, m) exactly as the replay and the live pipeline do: each
+    view cropped to :data:`CAPTURE_BOX_M` (:func:`calib.markers.crop_volume`: non-finite rows
+    and rows outside the box dropped), then :func:`calib.markers.merge_views` (single linkage
+    at ``radius_m`` over all points of all views, clusters averaged, in order of their first
+    point). One fusion for training and inference."""
+    box = np.asarray(CAPTURE_BOX_M, dtype=np.float64)
+    cropped = [
+        calib_markers.crop_volume(np.asarray(v, np.float64).reshape(-1, 3), box[:, 0], box[:, 1])
+        for v in views
+    ]
+    return calib_markers.merge_views(cropped, radius_m=radius_m)

@@ -36,7 +36,15 @@ from mocaprig.acquire.davis240c_config import (
 )
 from mocaprig.acquire.davis240c_decode import DavisPacket, SpecialType
 from mocaprig.drivers_mock.davis240c_usb import Davis240CBackend, DavisFaults, SyntheticDavisSource
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 
 #: Start-sequence sleeps for the mock (the real camera keeps libcaer's 10/200/50 ms).
 FAST = (0.0, 0.0, 0.0)
@@ -401,3 +409,135 @@ def test_a_slow_consumer_loses_counted_packets_but_keeps_specials() -> None:
     assert s.specials_dropped == 0
     # Dropped packets' specials (ext-input pulses at 30 Hz, APS markers) ride on later packets.
     assert specials.size > sum(1 for _ in delivered) // 10
+
+
+# -- which DeviceError kind, with the libusb code kept (mock only) -------------------------------
+
+
+def test_no_camera_and_a_wrong_serial_are_not_found_errors() -> None:
+    with pytest.raises(DeviceNotFoundError, match="no DAVIS camera found") as exc:
+        Davis240C.open(backend=_EmptyBus())
+    assert exc.value.backend_code is None
+    with pytest.raises(DeviceNotFoundError, match=r"serial '99999999'.*00000042"):
+        open_mock(mock(serial="00000042"), serial="99999999")
+
+
+@pytest.mark.parametrize(
+    ("refuse", "kind", "words"),
+    [
+        (
+            ("Access denied (insufficient permissions)", -3, errno.EACCES),
+            DevicePermissionError,
+            r"permission denied.*udev",
+        ),
+        (("Resource busy", -6, errno.EBUSY), DeviceBusyError, "busy: another process holds it"),
+        (("Entity not found", -5, errno.ENOENT), DeviceNotFoundError, "cannot claim interface 0"),
+        (
+            ("No such device (it may have been disconnected)", -4, errno.ENODEV),
+            DeviceDisconnectedError,
+            "cannot claim interface 0",
+        ),
+        (("Operation timed out", -7, errno.ETIMEDOUT), DeviceTimeoutError, "cannot claim"),
+        (("Input/Output Error", -1, errno.EIO), DeviceError, "cannot claim interface 0"),
+    ],
+)
+def test_a_refused_claim_is_the_kind_its_libusb_code_says(
+    refuse: tuple[str, int, int], kind: type[DeviceError], words: str
+) -> None:
+    with pytest.raises(DeviceError, match=words) as exc:
+        Davis240C.open(backend=_refusing(refuse))
+    assert type(exc.value) is kind
+    assert exc.value.backend_code == refuse[1]
+    assert exc.value.backend_errno == refuse[2]
+    assert exc.value.backend_error == refuse[0]
+    assert isinstance(exc.value.__cause__, usb.core.USBError)
+
+
+class _SlowControl(Davis240CBackend):
+    """The mock, but once ``timing_out`` is set every control transfer times out."""
+
+    timing_out = False
+
+    def ctrl_transfer(
+        self,
+        dev_handle: Any,
+        bmRequestType: int,
+        bRequest: int,
+        wValue: int,
+        wIndex: int,
+        data: Any,
+        timeout: int,
+    ) -> int:
+        if self.timing_out:
+            raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
+        return super().ctrl_transfer(
+            dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout
+        )
+
+
+class _NoStringAccess(_SlowControl):
+    """The mock, but reading a string descriptor (the serial) is denied, as without the rule."""
+
+    def ctrl_transfer(
+        self,
+        dev_handle: Any,
+        bmRequestType: int,
+        bRequest: int,
+        wValue: int,
+        wIndex: int,
+        data: Any,
+        timeout: int,
+    ) -> int:
+        if bmRequestType == 0x80 and bRequest == 6 and wValue >> 8 == 3:  # GET_DESCRIPTOR string
+            raise usb.core.USBError("Access denied (insufficient permissions)", -3, errno.EACCES)
+        return super().ctrl_transfer(
+            dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout
+        )
+
+
+def test_an_unreadable_serial_is_a_permission_error_and_find_says_why() -> None:
+    be = _NoStringAccess(SyntheticDavisSource(seed=0), serial="00000042")
+    with pytest.raises(DevicePermissionError, match=r"DAVIS camera at bus .*permission denied"):
+        Davis240C.open(backend=be)
+    (dev,) = find_davis(backend=be)
+    assert dev.serial is None
+    assert dev.error is not None
+    assert dev.error.startswith("permission denied; install the udev rule")
+
+
+def test_a_control_transfer_timeout_is_a_timeout_error() -> None:
+    be = _SlowControl(SyntheticDavisSource(seed=0))
+    with open_mock(be) as cam:
+        be.timing_out = True
+        with pytest.raises(DeviceTimeoutError, match=r"USB error while reading register") as exc:
+            cam.config_get(Module.MUX, MuxParam.RUN)
+        assert (exc.value.backend_code, exc.value.backend_errno) == (-7, errno.ETIMEDOUT)
+        assert isinstance(exc.value.__cause__, usb.core.USBTimeoutError)
+        with pytest.raises(DeviceTimeoutError, match="while writing 2 registers"):
+            cam.timestamp_reset()
+        be.timing_out = False
+
+
+def test_unplugged_while_streaming_is_a_disconnected_error_with_the_libusb_code() -> None:
+    # Real-time pacing (as above) so that the unplug cannot overtake the start sequence.
+    backend = mock(faults=DavisFaults(unplug_at_us=600_000), rate=50_000.0, pacing="realtime")
+    with open_mock(backend) as cam:
+        cam.start()
+        with pytest.raises(DeviceDisconnectedError, match="disconnected while streaming") as exc:
+            for _ in cam.packets(timeout_s=30):
+                pass
+        assert (exc.value.backend_code, exc.value.backend_errno) == (-4, errno.ENODEV)
+        assert exc.value.backend_error == "No such device (it may have been disconnected)"
+        # Register access after the unplug names it too.
+        with pytest.raises(DeviceDisconnectedError, match="disconnected while reading") as exc2:
+            cam.config_get(Module.MUX, MuxParam.RUN)
+        assert exc2.value.backend_code == -4
+
+
+def test_a_stalled_stream_is_a_timeout_error() -> None:
+    faults = DavisFaults(stall_at_us=100_000, stall_us=10**12)
+    with open_mock(mock(faults=faults)) as cam:
+        cam.start()
+        with pytest.raises(DeviceTimeoutError, match=r"sent nothing for 0.2 s.*stalled"):
+            for _ in cam.packets(timeout_s=0.2):
+                pass

@@ -25,7 +25,15 @@ from mocaprig.acquire.depth_camera import (
     SyncMode,
     TimestampDomain,
 )
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 
 rs = pytest.importorskip(
     "pyrealsense2",
@@ -391,3 +399,108 @@ def test_enumerate_skips_other_models_and_filters_serials() -> None:
     assert (
         enumerate_cameras(context=Ctx(), serials=["300000000001"])[0].info.serial == "300000000001"
     )
+
+
+# -- which DeviceError kind, with the SDK's words kept ---------------------------------------------
+
+
+def test_a_serial_that_is_not_connected_is_a_not_found_error() -> None:
+    d415 = make_software_d415("300000000001")
+
+    class Ctx:
+        def query_devices(self) -> list[Any]:
+            return [d415.device]
+
+    with pytest.raises(DeviceNotFoundError, match=r"D415 300000000009 not connected") as exc:
+        enumerate_cameras(context=Ctx(), serials=["300000000009"])
+    assert "300000000001" in str(exc.value)
+
+
+def test_a_sensor_streamed_by_another_handle_is_busy() -> None:
+    sw = make_software_d415()
+    first = started(sw)
+    second = RealSenseCamera(sw.device)
+    second.configure(stream=StreamConfig(), options=OPTIONS, sync_mode=SyncMode.SLAVE)
+    try:
+        with pytest.raises(DeviceBusyError, match="is another program using it") as exc:
+            second.start()
+        assert exc.value.backend_error is not None
+        assert "is streaming" in exc.value.backend_error  # the SDK's own words
+        assert isinstance(exc.value.__cause__, RuntimeError)
+    finally:
+        first.stop()
+
+
+class _FailingSensor:
+    """A software sensor whose methods named in ``fail`` raise ``RuntimeError(message)``."""
+
+    def __init__(self, sensor: Any, message: str, fail: tuple[str, ...]) -> None:
+        self._sensor = sensor
+        self._message = message
+        self._fail = fail
+
+    def __getattr__(self, name: str) -> Any:
+        if name in self._fail:
+
+            def failing(*_args: Any) -> None:
+                raise RuntimeError(self._message)
+
+            return failing
+        return getattr(self._sensor, name)
+
+
+class _DeviceWith:
+    """An ``rs.device`` stand-in handing out a given depth sensor (everything else delegated)."""
+
+    def __init__(self, device: Any, sensor: Any) -> None:
+        self._device = device
+        self._sensor = sensor
+
+    def first_depth_sensor(self) -> Any:
+        return self._sensor
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._device, name)
+
+
+def failing_camera(message: str, *fail: str) -> tuple[SwCamera, RealSenseCamera]:
+    sw = make_software_d415()
+    cam = RealSenseCamera(_DeviceWith(sw.device, _FailingSensor(sw.sensor, message, fail)))
+    cam.configure(stream=StreamConfig(), options=OPTIONS, sync_mode=SyncMode.SLAVE)
+    return sw, cam
+
+
+# librealsense's words (its messages, with the errno text after "Last Error:").
+_GONE = "xioctl(VIDIOC_STREAMON) failed, errno=19 Last Error: No such device"
+_BUSY = "xioctl(VIDIOC_S_FMT) failed, errno=16 Last Error: Device or resource busy"
+
+
+@pytest.mark.parametrize(
+    ("message", "kind"),
+    [
+        (_GONE, DeviceDisconnectedError),
+        ("Camera disconnected!", DeviceDisconnectedError),
+        (_BUSY, DeviceBusyError),
+        ("Failed to open /dev/video2, Last Error: Permission denied", DevicePermissionError),
+        ("USB CAM overflow: Operation timed out", DeviceTimeoutError),
+        ("hwmon command 0x80 failed. Error type: No data to return (-21).", DeviceError),
+    ],
+)
+def test_an_sdk_failure_is_the_kind_its_words_say(message: str, kind: type[DeviceError]) -> None:
+    _, cam = failing_camera(message, "start")
+    with pytest.raises(DeviceError, match=r"cannot start streaming .*replug") as exc:
+        cam.start()
+    assert type(exc.value) is kind
+    assert exc.value.backend_error == message
+    assert exc.value.backend_errno is None
+
+
+def test_stopping_a_camera_that_went_away_is_a_disconnected_error() -> None:
+    sw, cam = failing_camera(_GONE, "stop")
+    cam.start()
+    with pytest.raises(DeviceDisconnectedError, match="stopping failed") as exc:
+        cam.stop()
+    assert exc.value.backend_error == _GONE
+    assert not cam.is_streaming
+    sw.sensor.stop()
+    sw.sensor.close()

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mocaprig.acquire.commands_record import read_events_txt
 from mocaprig.acquire.recording import Recording
+from mocaprig.acquire.rpg_text import read_events_txt
 from mocaprig.cli import main
 
 _DATA = Path(__file__).parent / "data" / "rpg_shapes_rotation_events_head.txt"

@@ -27,7 +27,7 @@ def _mock_d415() -> Any:
 
 
 def test_d415_source_records_ir_depth_timing_and_calibration(tmp_path: Path) -> None:
-    from mocaprig.acquire.commands_record import DepthCameraSource
+    from mocaprig.acquire.record_sources import DepthCameraSource
 
     cam, mode, opts = _mock_d415()
     src = DepthCameraSource(cam, stream=mode, options=opts)
@@ -62,8 +62,8 @@ def test_d415_source_records_ir_depth_timing_and_calibration(tmp_path: Path) -> 
 
 @pytest.mark.slow
 def test_davis_source_records_through_the_driver_and_usb_mock(tmp_path: Path) -> None:
-    from mocaprig.acquire.commands_record import DavisSource
     from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
+    from mocaprig.acquire.record_sources import DavisSource
 
     try:
         cam = Davis240C.open(backend=load_mock_backend(seconds=6.0))
@@ -94,7 +94,7 @@ def test_davis_source_records_through_the_driver_and_usb_mock(tmp_path: Path) ->
 
 
 def test_syncbox_source_records_pulse_reports(tmp_path: Path) -> None:
-    from mocaprig.acquire.commands_record import SyncBoxSource
+    from mocaprig.acquire.record_sources import SyncBoxSource
     from mocaprig.acquire.recording_format import SyncPulses
     from mocaprig.acquire.syncbox import SyncBox, open_mock_syncbox
 

@@ -362,7 +362,7 @@ def test_rpg_text_round_trips_exactly_to_the_ns(
     import io
     import tempfile
 
-    from mocaprig.acquire.commands_record import (
+    from mocaprig.acquire.rpg_text import (
         _read_events_txt_lines,
         export_events_txt,
         read_events_txt,
@@ -401,7 +401,7 @@ def test_rpg_text_round_trips_exactly_to_the_ns(
     ],
 )
 def test_rpg_text_times_parse_exactly(tmp_path: Path, text: str, t_ns: int) -> None:
-    from mocaprig.acquire.commands_record import read_events_txt
+    from mocaprig.acquire.rpg_text import read_events_txt
 
     p = tmp_path / "e.txt"
     p.write_text(f"{text} 1 2 1\n")
@@ -412,7 +412,7 @@ def test_rpg_text_times_parse_exactly(tmp_path: Path, text: str, t_ns: int) -> N
 
 @pytest.mark.parametrize("text", ["0.0000000011", "1e-10", "0x10", "1_0", "nan"])
 def test_rpg_text_refuses_times_finer_than_ns_or_not_decimal(tmp_path: Path, text: str) -> None:
-    from mocaprig.acquire.commands_record import read_events_txt
+    from mocaprig.acquire.rpg_text import read_events_txt
 
     p = tmp_path / "e.txt"
     p.write_text(f"0.1 1 2 1\n{text} 1 2 1\n")
@@ -456,7 +456,7 @@ def test_put_from_many_threads_counts_every_message(tmp_path: Path) -> None:
 def test_fast_and_line_readers_agree_on_layout_variants(
     tmp_path: Path, text: str, fast: bool
 ) -> None:
-    from mocaprig.acquire.commands_record import (
+    from mocaprig.acquire.rpg_text import (
         _read_events_txt_fast,
         _read_events_txt_lines,
         read_events_txt,

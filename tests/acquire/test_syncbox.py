@@ -21,7 +21,15 @@ from mocaprig.acquire.syncbox import (
     SyncBoxMode,
     open_mock_syncbox,
 )
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import (
+    DeviceBusyError,
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceNotFoundError,
+    DevicePermissionError,
+    DeviceTimeoutError,
+    ValidationError,
+)
 
 Responder = Callable[[str], list[str]]
 
@@ -319,3 +327,141 @@ def test_find_syncboxes_lists_port_names() -> None:
     ports = find_syncboxes()
     assert all(isinstance(p, str) for p in ports)
     assert ports == sorted(ports)
+
+
+# -- which DeviceError kind, with pyserial's errno kept --------------------------------------------
+
+
+def test_missing_port_is_a_not_found_error_with_the_errno(tmp_path: Path) -> None:
+    with pytest.raises(DeviceNotFoundError, match="does not exist") as exc:
+        SyncBox(str(tmp_path / "ttyACM9")).open()
+    assert exc.value.backend_errno == errno.ENOENT
+    assert exc.value.backend_error is not None
+    assert isinstance(exc.value.__cause__, serial.SerialException)
+
+
+@pytest.mark.parametrize(
+    ("code", "text", "kind", "words"),
+    [
+        (errno.EACCES, "Permission denied: '/dev/ttyACM0'", DevicePermissionError, "dialout"),
+        (errno.EBUSY, "Device or resource busy: '/dev/ttyACM0'", DeviceBusyError, "is busy"),
+        (errno.ENOENT, "No such file or directory", DeviceNotFoundError, "does not exist"),
+        (errno.EIO, "Input/output error", DeviceError, "cannot open sync box port"),
+    ],
+)
+def test_an_open_failure_is_the_kind_its_errno_says(
+    monkeypatch: pytest.MonkeyPatch, code: int, text: str, kind: type[DeviceError], words: str
+) -> None:
+    # pyserial's own wording: SerialException(errno, "could not open port PORT: [Errno N] ...").
+    def refuse(*_a: object, **_k: object) -> None:
+        raise serial.SerialException(
+            code, f"could not open port /dev/ttyACM0: [Errno {code}] {text}"
+        )
+
+    monkeypatch.setattr(serial, "serial_for_url", refuse)
+    with pytest.raises(DeviceError, match=words) as exc:
+        SyncBox("/dev/ttyACM0").open()
+    assert type(exc.value) is kind
+    assert exc.value.backend_errno == code
+
+
+def test_silence_and_a_missing_reply_are_timeout_errors() -> None:
+    silent = FakeBox(lambda line: [])
+    try:
+        with pytest.raises(DeviceTimeoutError, match="no answer to HELLO"):
+            SyncBox(silent.port, boot_timeout_s=0.3).open()
+    finally:
+        silent.close()
+    with (
+        open_mock_syncbox(fault="no-reply") as mock,
+        SyncBox(mock.port, timeout_s=0.2) as box,
+        pytest.raises(DeviceTimeoutError, match="did not answer STATUS"),
+    ):
+        box.status()
+
+
+def test_a_box_that_answers_wrongly_is_a_plain_device_error() -> None:
+    other = FakeBox(lambda line: ["Arduino ready"])
+    try:
+        with pytest.raises(DeviceError, match="not a mocaprig sync box") as exc:
+            SyncBox(other.port, boot_timeout_s=0.3).open()
+        assert type(exc.value) is DeviceError
+    finally:
+        other.close()
+
+
+def test_a_box_gone_for_good_is_a_disconnected_error(tmp_path: Path) -> None:
+    link = tmp_path / "ttySYNC"
+    first = FakeBox(protocol_box(), link=link)
+    try:
+        box = SyncBox(str(link), timeout_s=0.3, backoff_s=0.01, max_reopen=1)
+        box.open()
+        first.hang_up()
+        with pytest.raises(DeviceDisconnectedError, match="1 reopen attempt") as exc:
+            box.status()
+        assert exc.value.backend_error is not None  # pyserial's words about the failed I/O
+        assert isinstance(exc.value.__cause__, serial.SerialException | OSError)
+        box.close()
+    finally:
+        first.close()
+
+
+def test_the_mock_disconnect_fault_is_a_disconnected_error() -> None:
+    with open_mock_syncbox(fault="disconnect") as mock:
+        box = SyncBox(mock.port, timeout_s=0.3, backoff_s=0.01, max_reopen=1)
+        box.open()
+        with pytest.raises(DeviceDisconnectedError, match=r"sync box on .*replug"):
+            box.status()
+        box.close()
+
+
+class _FailingPort:
+    """A port that opens, then fails on ``write`` or ``read`` as pyserial does."""
+
+    in_waiting = 0
+
+    def __init__(self, fail_on: str, err: Exception) -> None:
+        self.fail_on = fail_on
+        self.err = err
+
+    def write(self, data: bytes) -> int:
+        if self.fail_on == "write":
+            raise self.err
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def read(self, n: int) -> bytes:
+        if self.fail_on == "read":
+            raise self.err
+        return b""
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize(
+    ("fail_on", "err", "kind", "words"),
+    [
+        (
+            "read",
+            serial.SerialException("device reports readiness to read but returned no data"),
+            DeviceDisconnectedError,
+            "I/O failed while identifying it",
+        ),
+        ("write", serial.SerialTimeoutException("Write timeout"), DeviceTimeoutError, "HELLO"),
+    ],
+)
+def test_io_failing_while_identifying_the_box_is_a_device_error(
+    monkeypatch: pytest.MonkeyPatch,
+    fail_on: str,
+    err: Exception,
+    kind: type[DeviceError],
+    words: str,
+) -> None:
+    monkeypatch.setattr(serial, "serial_for_url", lambda *_a, **_k: _FailingPort(fail_on, err))
+    with pytest.raises(kind, match=words) as exc:
+        SyncBox("/dev/ttyACM0", boot_timeout_s=0.3).open()
+    assert exc.value.__cause__ is err
+    assert exc.value.backend_error == str(err)

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mocaprig.calib import vicon
+from mocaprig.calib import c3d_decode, vicon
 from mocaprig.calib.vicon import (
     MarkerTrajectories,
     ViconFileError,
@@ -549,7 +549,7 @@ def test_a_crash_in_the_isolated_reader_becomes_vicon_file_error(
     small_c3d: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(
-        vicon, "_CHILD_CODE", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"
+        c3d_decode, "_CHILD_CODE", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"
     )
     with pytest.raises(ViconFileError, match=r"crashed on this file \(killed by signal 11"):
         read_c3d(small_c3d, isolate=True)
@@ -559,7 +559,7 @@ def test_an_error_in_the_isolated_reader_becomes_vicon_file_error(
     small_c3d: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(
-        vicon,
+        c3d_decode,
         "_CHILD_CODE",
         "import sys; sys.stderr.write('mocaprig-c3d-error: RuntimeError: boom'); sys.exit(3)",
     )

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mocaprig.calib import vicon
+from mocaprig.calib import c3d_decode, vicon
 from mocaprig.calib.time_align import analog_times_ns, vicon_times_ns
 from mocaprig.calib.vicon import (
     AnalogChannels,
@@ -208,7 +208,7 @@ def test_a_crash_in_the_isolated_analog_reader_becomes_vicon_file_error(
 ) -> None:
     path, _, _ = analog_c3d
     monkeypatch.setattr(
-        vicon, "_CHILD_CODE", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"
+        c3d_decode, "_CHILD_CODE", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)"
     )
     with pytest.raises(ViconFileError, match=r"crashed on this file \(killed by signal 11"):
         read_c3d_analogs(path, isolate=True)

@@ -67,6 +67,13 @@ def test_demo_command_reports_figures_against_truth(
     assert 0 < rp["mpjpe_mm"] < 300
     assert Path(rp["results_mcap"]).parent == out
     assert all(Path(rp[k]).is_file() for k in ("results_mcap", "results_c3d", "results_csv"))
+    # `democap live` on the mock rig of the same world, through the recorder.
+    assert report["stages"]["democap_live"].startswith("done")
+    lv = figures["democap_live"]
+    assert lv["instants"] >= 25  # 1 s at 30 Hz
+    assert lv["drops"] == 0
+    assert 0 < lv["mpjpe_mm"] < 300  # the same off-distribution 2-camera rig as the replay
+    assert Path(lv["out"]).is_file()
     assert report["stages"]["eventcap"].startswith("pending")
     assert Path(report["figure"]).stat().st_size > 10_000
     on_disk = json.loads(Path(report["report"]).read_text(encoding="utf-8"))

@@ -19,11 +19,9 @@ import numpy as np
 import pytest
 import torch
 
-from mocaprig.calib.calibration import Calibration, write_calibration
-from mocaprig.calib.vicon_calibration import calibrate_vicon
+from mocaprig.calib.calibration import Calibration
 from mocaprig.cli import main
-from mocaprig.drivers_mock import simulate_session
-from mocaprig.drivers_mock.truth import Truth, democap_truth_at, read_truth
+from mocaprig.drivers_mock.truth import Truth, democap_truth_at
 from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
 from mocaprig.process.democap import DemocapPredictor, evaluate
@@ -37,6 +35,7 @@ from mocaprig.process.democap.replay import (
     run_replay,
     score_replay,
 )
+from tests.conftest import CalibratedSession
 
 LABELS = [*MARKER_NAMES, *(f"J_{j}" for j in DEMOCAP_JOINTS)]
 
@@ -111,20 +110,20 @@ class Replayed:
 
 
 @pytest.fixture(scope="module")
-def replayed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Replayed]:
-    """A 4 s session (seed 5, four D415s, no DAVIS), its calibration and its replay."""
+def replayed(
+    tmp_path_factory: pytest.TempPathFactory, calibrated_session: CalibratedSession
+) -> Iterator[Replayed]:
+    """The shared calibrated session (4 s, seed 5, four D415s) and its replay."""
+    cs = calibrated_session
     root = tmp_path_factory.mktemp("replay")
-    sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
-    session = sim.out_dir / "session.mcap"
-    cal = calibrate_vicon(session, sim.c3d_path).calibration
-    calib = write_calibration(cal, root / "calib.toml")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the network is ~10x slower with 2 threads on a busy 2-core box
     try:
         predictor = DemocapPredictor()
         (root / "out").mkdir()
-        result = run_replay(session, calib, out=root / "out" / "results.mcap", predictor=predictor)
-        yield Replayed(session, calib, cal, read_truth(sim.out_dir), predictor, result)
+        out = root / "out" / "results.mcap"
+        result = run_replay(cs.session, cs.calib, out=out, predictor=predictor)
+        yield Replayed(cs.session, cs.calib, cs.calibration, cs.truth, predictor, result)
     finally:
         torch.set_num_threads(threads)
 
@@ -194,9 +193,26 @@ def _scene_messages(path: Path) -> dict[str, list[tuple[int, object]]]:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for schema, channel, message, decoded in reader.iter_decoded_messages():
             assert schema is not None
+            if channel.topic in ("/diagnostics", "/log"):
+                continue  # the recorder's own streams (checked below)
             assert schema.name == "foxglove.SceneUpdate"
             out.setdefault(channel.topic, []).append((message.log_time, decoded))
     return out
+
+
+@pytest.mark.slow
+def test_replay_results_are_written_through_the_recorder_losing_nothing(
+    replayed: Replayed,
+) -> None:
+    from mocaprig.acquire.recording import info
+
+    r = replayed.result
+    summary = info(r.outputs["mcap"])
+    assert summary.drops_total == 0
+    scene = [s for s in summary.streams if s.topic.startswith("/democap/")]
+    assert sorted(s.messages for s in scene) == [r.instants] * 3
+    # One time base in the file: the recorder's diagnostics lie on the reference clock too.
+    assert summary.duration_s < (int(r.t_ref_ns[-1]) - int(r.t_ref_ns[0])) / 1e9 + 5.0
 
 
 @pytest.mark.slow

@@ -23,11 +23,14 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+from mocaprig.calib import markers
 from mocaprig.calib.markers import merge_views as replay_merge
 from mocaprig.errors import ValidationError
 from mocaprig.process.body import BodyShape, MarkerSet, make_motion
+from mocaprig.process.democap.dataset import make_sample
 from mocaprig.process.democap.simdata import (
     BASELINE_M,
+    CAPTURE_BOX_M,
     DEPTH_NOISE_CLEAR,
     IMAGE_H,
     IMAGE_W,
@@ -221,6 +224,49 @@ def test_fusion_is_the_replays_merge_after_the_capture_box() -> None:
     theirs = replay_merge(inside, radius_m=0.010)
     assert ours.shape == theirs.shape
     np.testing.assert_allclose(np.sort(ours, axis=0), np.sort(theirs, axis=0), atol=1e-12)
+
+
+def test_training_data_and_inference_share_one_fusion(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Same points, same order, same NaN handling as the replay/live fusion (per-view crop to
+    the capture box, then calib.markers.merge_views), and the training samples go through it."""
+    rng = np.random.default_rng(2)
+    views = [rng.uniform([-0.5, -0.5, 0.0], [0.5, 0.5, 2.0], (40, 3)) for _ in range(3)]
+    views[1][:8] = views[0][:8] + rng.normal(0.0, 0.003, (8, 3))  # duplicates across views
+    views[2][0] = views[1][20] + [0.008, 0.0, 0.0]  # a chain across three views
+    views[0][30] = views[2][0] + [0.008, 0.0, 0.0]
+    views[2][5] = views[2][6] + [0.0, 0.004, 0.0]  # two points of one view link
+    views[0][10] = [np.nan, np.nan, np.nan]  # a blob without depth
+    views[1][11] = [0.1, np.nan, 1.0]
+    views[2][12] = [np.inf, 0.0, 1.0]
+    views[0][11] = [0.0, 0.0, 2.6]  # above the capture box
+    views.append(np.zeros((0, 3)))  # a camera that saw nothing
+    box = np.asarray(CAPTURE_BOX_M)
+    inference = markers.merge_views(
+        [markers.crop_volume(v, box[:, 0], box[:, 1]) for v in views], radius_m=0.010
+    )
+    training = merge_views(views)
+    np.testing.assert_array_equal(training, inference)  # same order, bit for bit
+    assert np.isfinite(training).all()
+    assert training.shape[0] == 120 - 4 - 8 - 2 - 1  # dropped, duplicates, chain, pair
+    # Clusters come in order of their first point: view 0's rows first, in their own order.
+    np.testing.assert_allclose(training[:8], (views[0][:8] + views[1][:8]) / 2, atol=1e-15)
+    np.testing.assert_array_equal(training[8:10], views[0][8:10])
+    np.testing.assert_array_equal(training[10], views[0][12])  # rows 10, 11 dropped
+    chain = (views[0][30] + views[1][20] + views[2][0]) / 3
+    np.testing.assert_allclose(training[28], chain, atol=1e-15)
+
+    calls: list[int] = []
+    inner = markers.merge_views
+
+    def spy(points: list[np.ndarray], *, radius_m: float = 0.010) -> np.ndarray:
+        calls.append(len(points))
+        return inner(points, radius_m=radius_m)
+
+    monkeypatch.setattr(markers, "merge_views", spy)
+    np.testing.assert_array_equal(merge_views(views), inference)
+    assert calls == [len(views)]
+    make_sample(_take(3), 0, np.random.default_rng(4))
+    assert len(calls) == 2  # the training sample's cloud came from the inference fusion
 
 
 # ------------------------------------------------------------------------------ statistics
