@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.errors import DeviceError, RecordingError
 from mocaprig.progress import StatusLine
 
@@ -634,7 +634,7 @@ def register_davis(subparsers: argparse._SubParsersAction[argparse.ArgumentParse
         formatter_class=_formatter(),
     )
     sub = p.add_subparsers(dest="davis_command", metavar="SUBCOMMAND")
-    p.set_defaults(func=lambda _args: _usage(p))
+    p.set_defaults(func=usage_handler(p))
 
     d = sub.add_parser(
         "decode",
@@ -722,8 +722,3 @@ def register_devices(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     p.add_argument("--mock", action="store_true", help="list the simulated devices")
     add_json_flag(p)
     p.set_defaults(func=lambda a: list_devices(mock=a.mock, as_json=a.json))
-
-
-def _usage(p: argparse.ArgumentParser) -> int:
-    p.print_help(sys.stderr)
-    return 2

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from mocaprig.acquire.camera_backends import open_cameras
 from mocaprig.acquire.d415_sync import (
     SyncFlag,
     SyncHealth,
@@ -23,15 +24,9 @@ from mocaprig.acquire.d415_sync import (
     run_sync_check,
     start_rig,
 )
-from mocaprig.acquire.depth_camera import (
-    DepthCamera,
-    FrameSet,
-    SensorOptions,
-    StreamConfig,
-    open_cameras,
-)
+from mocaprig.acquire.depth_camera import DepthCamera, FrameSet, SensorOptions, StreamConfig
 from mocaprig.acquire.realsense import METADATA_HINT
-from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.errors import ValidationError
 
 __all__ = ["check_sync", "list_cameras", "register_d415", "stream"]
@@ -69,7 +64,8 @@ def _open(*, mock: bool, seed: int, fault: str | None, seconds: float | None) ->
         return open_cameras("realsense")
     options: dict[str, Any] = {"seed": seed, "fault": fault, "images": False}
     if seconds is not None:
-        options["seconds"] = seconds + 1.0  # the simulated session outlasts the capture
+        # The simulated session outlasts the capture and is long enough for its clapperboard.
+        options["seconds"] = max(seconds + 1.0, 3.0)
     return open_cameras("mock", **options)
 
 
@@ -286,17 +282,29 @@ def register_d415(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     )
     d415 = parser.add_subparsers(dest="d415_command", metavar="SUBCOMMAND")
 
-    def usage(_args: argparse.Namespace) -> int:
-        parser.print_help(sys.stderr)
-        return 2
+    parser.set_defaults(func=usage_handler(parser))
 
-    parser.set_defaults(func=usage)
-
-    p_list = d415.add_parser("list", help="connected D415 cameras")
+    raw = argparse.RawDescriptionHelpFormatter
+    p_list = d415.add_parser(
+        "list",
+        help="connected D415 cameras",
+        description="List the connected D415s: serial, name, firmware, USB link.",
+        epilog="examples:\n  mocaprig d415 list\n  mocaprig d415 list --json\n"
+        "  mocaprig d415 list --mock          the simulated rig's four cameras\n",
+        formatter_class=raw,
+    )
     _add_common(p_list, capture_opts=False)
     p_list.set_defaults(func=lambda a: list_cameras(mock=a.mock, seed=a.seed, as_json=a.json))
 
-    p_stream = d415.add_parser("stream", help="stream every camera; live fps and drops")
+    p_stream = d415.add_parser(
+        "stream",
+        help="stream every camera; live fps and drops",
+        description="Stream every camera (first = sync master): live fps and counter drops.",
+        epilog="examples:\n  mocaprig d415 stream --seconds 5\n"
+        "  mocaprig d415 stream --seconds 10 --mode 848x480@90 --json\n"
+        "  mocaprig d415 stream --mock --mock-fault drops --seconds 5\n",
+        formatter_class=raw,
+    )
     _add_common(p_stream, capture_opts=True)
     p_stream.set_defaults(
         func=lambda a: stream(
@@ -313,6 +321,11 @@ def register_d415(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     p_check = d415.add_parser(
         "check-sync",
         help="verify hardware sync (counters, drift, free-running slaves); exit 1 if bad",
+        description="Verify on the stream that every slave is locked to the master.",
+        epilog="examples:\n  mocaprig d415 check-sync --seconds 10\n"
+        "  mocaprig d415 check-sync --external-trigger --seconds 10   all slaves of the box\n"
+        "  mocaprig d415 check-sync --mock --mock-fault slave-trigger-cut --seconds 10 --json\n",
+        formatter_class=raw,
     )
     _add_common(p_check, capture_opts=True)
     p_check.add_argument(

@@ -30,9 +30,10 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -60,6 +61,7 @@ __all__ = [
     "SyncReport",
     "capture",
     "configure_rig",
+    "iter_framesets",
     "run_sync_check",
     "start_rig",
 ]
@@ -867,27 +869,26 @@ def start_rig(cameras: Sequence[DepthCamera]) -> None:
         raise
 
 
-def capture(
+def iter_framesets(
     cameras: Sequence[DepthCamera],
     *,
     seconds: float,
-    on_frameset: Callable[[FrameSet], None],
     stall_s: float = 2.0,
-) -> float:
+    stop: threading.Event | None = None,
+) -> Iterator[FrameSet]:
     """Poll started cameras round-robin until each has delivered ``seconds`` of framesets.
 
     Durations are measured on the framesets' ``host_time_ns`` (simulated cameras run on their
     own clock), from the first frameset of any camera. A camera that delivers nothing for
-    ``stall_s`` wall seconds is given up (its absence shows in the results). Returns the
-    captured span in seconds.
+    ``stall_s`` wall seconds is given up (its absence shows in the results). Setting ``stop``
+    ends the polling early.
     """
     check_positive(seconds, name="seconds")
     span_ns = round(seconds * 1e9)
     t0: int | None = None
-    last_ns: int | None = None
     done: set[str] = set()
     idle_since: dict[str, float] = {}
-    while len(done) < len(cameras):
+    while len(done) < len(cameras) and not (stop is not None and stop.is_set()):
         got = False
         for cam in cameras:
             serial = cam.info.serial
@@ -907,11 +908,28 @@ def capture(
             if host_ns - t0 >= span_ns:
                 done.add(serial)
                 continue
-            last_ns = host_ns if last_ns is None else max(last_ns, host_ns)
-            on_frameset(fs)
+            yield fs
         if not got:
             time.sleep(0.002)
-    return 0.0 if t0 is None or last_ns is None else (last_ns - t0) / 1e9
+
+
+def capture(
+    cameras: Sequence[DepthCamera],
+    *,
+    seconds: float,
+    on_frameset: Callable[[FrameSet], None],
+    stall_s: float = 2.0,
+) -> float:
+    """Call ``on_frameset`` with every frameset of :func:`iter_framesets`; returns the captured
+    span in seconds (host time of the first to the last frameset)."""
+    first: int | None = None
+    last: int | None = None
+    for fs in iter_framesets(cameras, seconds=seconds, stall_s=stall_s):
+        host_ns = fs.timing.host_time_ns
+        first = host_ns if first is None else first
+        last = host_ns if last is None else max(last, host_ns)
+        on_frameset(fs)
+    return 0.0 if first is None or last is None else (last - first) / 1e9
 
 
 def run_sync_check(

@@ -4,6 +4,7 @@ pyrealsense2 has no backend seam like pyusb's, so the toolkit talks to depth cam
 this small protocol (house style habit 4). Two implementations exist:
 
 * ``acquire.realsense`` wraps pyrealsense2 2.59.1 (sensor-level API, hardware sync, metadata);
+  :func:`acquire.camera_backends.open_cameras` opens either by backend name;
 * the mock in ``drivers_mock`` (found through the ``mocaprig.mocks`` entry point ``d415``)
   renders the simulated world. ``acquire`` never imports ``drivers_mock``.
 
@@ -46,8 +47,6 @@ command makes the first camera the master.
 from __future__ import annotations
 
 import enum
-import importlib.metadata
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Final, Protocol, Self, runtime_checkable
@@ -55,14 +54,12 @@ from typing import Any, Final, Protocol, Self, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
-from mocaprig.errors import DeviceError, ValidationError
+from mocaprig.errors import ValidationError
 from mocaprig.validation import check_range, check_shape
 
 __all__ = [
     "ALLOWED_MODES",
-    "CAMERA_BACKENDS",
     "D415_PRODUCT_NAME",
-    "CameraFactory",
     "CameraInfo",
     "D415Frame",
     "DepthCamera",
@@ -77,13 +74,9 @@ __all__ = [
     "SyncMode",
     "TimestampDomain",
     "check_sync_mode",
-    "load_mock_factory",
-    "open_cameras",
-    "register_camera_backend",
 ]
 
 D415_PRODUCT_NAME: Final = "Intel RealSense D415"
-MOCKS_GROUP: Final = "mocaprig.mocks"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -465,66 +458,3 @@ class DepthCamera(Protocol):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None: ...
-
-
-CameraFactory = Callable[..., list[DepthCamera]]
-"""Enumerates cameras: ``factory(**kwargs) -> list[DepthCamera]`` (keyword options only)."""
-
-
-# ---------------------------------------------------------------------------------------------
-# Registry
-
-
-def load_mock_factory(name: str) -> Callable[..., Any]:
-    """Load the mock factory registered as ``name`` in the ``mocaprig.mocks`` entry points.
-
-    Raises:
-        DeviceError: no such entry point, or it cannot be imported.
-    """
-    eps = importlib.metadata.entry_points(group=MOCKS_GROUP)
-    if name not in eps.names:
-        msg = (
-            f"no mock '{name}' is registered in the '{MOCKS_GROUP}' entry points; "
-            "reinstall mocaprig (pip install -e .) so drivers_mock is available"
-        )
-        raise DeviceError(msg)
-    try:
-        factory: Callable[..., Any] = eps[name].load()
-    except Exception as err:  # an import error in the mock package, whatever its type
-        msg = f"cannot load the mock '{name}' ({eps[name].value}): {err}"
-        raise DeviceError(msg) from err
-    return factory
-
-
-def _realsense_cameras(**kwargs: Any) -> list[DepthCamera]:
-    from mocaprig.acquire.realsense import enumerate_cameras  # lazy: pyrealsense2 is optional
-
-    return list(enumerate_cameras(**kwargs))
-
-
-def _mock_cameras(**kwargs: Any) -> list[DepthCamera]:
-    cams = load_mock_factory("d415")(**kwargs)
-    return list(cams)
-
-
-_BACKENDS: dict[str, CameraFactory] = {"realsense": _realsense_cameras, "mock": _mock_cameras}
-CAMERA_BACKENDS: Mapping[str, CameraFactory] = _BACKENDS
-"""Backend name → factory: ``"realsense"`` (pyrealsense2) and ``"mock"`` (entry point)."""
-
-
-def register_camera_backend(name: str, factory: CameraFactory) -> None:
-    """Add (or replace) a backend in :data:`CAMERA_BACKENDS` (tests plug fakes in here)."""
-    _BACKENDS[name] = factory
-
-
-def open_cameras(backend: str = "realsense", **kwargs: Any) -> list[DepthCamera]:
-    """Enumerate the cameras of ``backend`` (keyword options go to its factory).
-
-    Raises:
-        ValidationError: unknown backend name.
-        DeviceError: the backend cannot be used (pyrealsense2 missing, mock not installed).
-    """
-    if backend not in CAMERA_BACKENDS:
-        msg = f"unknown camera backend {backend!r}; choose one of {sorted(CAMERA_BACKENDS)}"
-        raise ValidationError(msg)
-    return CAMERA_BACKENDS[backend](**kwargs)

@@ -39,6 +39,7 @@ from typing import Any, Final, Self
 
 import numpy as np
 
+from mocaprig.acquire.camera_backends import open_cameras
 from mocaprig.acquire.depth_camera import (
     CameraInfo,
     D415Frame,
@@ -53,7 +54,6 @@ from mocaprig.acquire.depth_camera import (
     SyncMode,
     TimestampDomain,
     check_sync_mode,
-    open_cameras,
 )
 from mocaprig.errors import (
     DeviceBusyError,

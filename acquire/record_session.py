@@ -75,8 +75,9 @@ def _mock_sources(
     syncbox: bool,
     stack: list[tuple[str, Any]],
 ) -> list[StreamSource]:
+    from mocaprig.acquire.camera_backends import open_cameras
     from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
-    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode
 
     sources: list[StreamSource] = []
     # "asap": the DAVIS simulator cannot render in real time on a small machine.
@@ -130,7 +131,7 @@ def _rig_sources(
             opened.
         ValidationError: a mock rig file asks for more cameras than the simulated rig has.
     """
-    from mocaprig.acquire import davis240c, depth_camera
+    from mocaprig.acquire import camera_backends, davis240c
     from mocaprig.acquire.depth_camera import SyncMode
 
     sources: list[StreamSource] = []
@@ -162,7 +163,7 @@ def _rig_sources(
                     f"{_MOCK_D415_MAX}; list at most {_MOCK_D415_MAX} with mock = true"
                 )
                 raise ValidationError(msg)
-            found_cams = depth_camera.open_cameras(
+            found_cams = camera_backends.open_cameras(
                 "mock", scenario=scenario, seed=seed, count=len(rig.d415), pacing="realtime",
                 seconds=seconds + 5.0,
             )  # fmt: skip
@@ -170,7 +171,7 @@ def _rig_sources(
             # order (the rig-file serial is kept in the device metadata as rig_serial).
             pairs = list(zip(rig.d415, found_cams, strict=True))
         else:
-            found_cams = depth_camera.open_cameras("realsense")
+            found_cams = camera_backends.open_cameras("realsense")
             by_serial = {c.info.serial: c for c in found_cams}
             missing = [e.serial for e in rig.d415 if e.serial not in by_serial]
             if missing:

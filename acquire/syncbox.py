@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Final, Self
 
-from mocaprig.acquire.depth_camera import load_mock_factory
+from mocaprig.acquire.mocks import load_mock_factory
 from mocaprig.errors import (
     DeviceBusyError,
     DeviceDisconnectedError,

@@ -7,11 +7,9 @@ Registered through the ``mocaprig.commands`` entry point ``vicon``. Handlers imp
 from __future__ import annotations
 
 import argparse
-import sys
-from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json, usage_handler
 
 if TYPE_CHECKING:
     from mocaprig.calib.vicon import MarkerTrajectories
@@ -48,7 +46,7 @@ def register_vicon(subparsers: argparse._SubParsersAction[argparse.ArgumentParse
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     vsub = vicon.add_subparsers(dest="vicon_command", metavar="SUBCOMMAND")
-    vicon.set_defaults(func=_vicon_usage(vicon))
+    vicon.set_defaults(func=usage_handler(vicon))
 
     info = vsub.add_parser(
         "info",
@@ -76,14 +74,6 @@ def register_vicon(subparsers: argparse._SubParsersAction[argparse.ArgumentParse
     )
     add_json_flag(info)
     info.set_defaults(func=vicon_info)
-
-
-def _vicon_usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    def handler(args: argparse.Namespace) -> int:
-        parser.print_help(sys.stderr)
-        return 2
-
-    return handler
 
 
 def vicon_info_summary(traj: MarkerTrajectories) -> dict[str, Any]:

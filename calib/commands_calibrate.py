@@ -14,14 +14,12 @@ Handlers import numpy/scipy/OpenCV lazily so ``mocaprig --help`` stays fast.
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
-import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.calib.commands_charuco import add_board_parser, add_intrinsics_parser
+from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.progress import ProgressBar
 
 __all__ = ["calibrate_evaluate", "calibrate_vicon_command", "register_calibrate"]
@@ -77,7 +75,7 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = cal.add_subparsers(dest="calibrate_command", metavar="SUBCOMMAND")
-    cal.set_defaults(func=_usage(cal))
+    cal.set_defaults(func=usage_handler(cal))
 
     vic = sub.add_parser(
         "vicon",
@@ -128,21 +126,8 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
     add_json_flag(ev)
     ev.set_defaults(func=calibrate_evaluate)
 
-    try:
-        charuco = importlib.import_module("mocaprig.calib.commands_charuco")
-    except ImportError:
-        _log.debug("mocaprig.calib.commands_charuco is not available; no intrinsics/board commands")
-    else:
-        charuco.add_intrinsics_parser(sub)
-        charuco.add_board_parser(sub)
-
-
-def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    def handler(args: argparse.Namespace) -> int:
-        parser.print_help(sys.stderr)
-        return 2
-
-    return handler
+    add_intrinsics_parser(sub)
+    add_board_parser(sub)
 
 
 def calibrate_vicon_command(args: argparse.Namespace) -> int:

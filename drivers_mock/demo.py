@@ -98,7 +98,7 @@ def _live_figures(
     """``democap live`` on the mock rig of the demo's world for :data:`LIVE_SECONDS`: the
     cameras' frame sets -> instants -> the live pipeline -> ``live.mcap``, scored like the
     replay."""
-    from mocaprig.acquire.depth_camera import open_cameras
+    from mocaprig.acquire.camera_backends import open_cameras
     from mocaprig.calib.calibration import read_calibration
     from mocaprig.drivers_mock.truth import democap_truth_at
     from mocaprig.process.democap.evaluate import EVAL_JOINTS

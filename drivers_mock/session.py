@@ -11,7 +11,7 @@
 
 ``session.mcap`` is recorded by :func:`record_session` through the real drivers
 (:class:`mocaprig.acquire.davis240c.Davis240C` over the mock USB backend,
-``acquire.depth_camera.open_cameras("mock")``, :class:`acquire.syncbox.SyncBox` on the mock's
+``acquire.camera_backends.open_cameras("mock")``, :class:`acquire.syncbox.SyncBox` on the mock's
 pseudo-terminal) and the recorder of ``mocaprig record``, from the mock devices of the same
 world. The mocks are paced "asap" (simulated time, deterministic): the recording takes as long as
 the simulation needs, the sources use the recorder's back-pressure (``put_wait``) and nothing is
@@ -319,8 +319,9 @@ def record_session(
         ValidationError: an unknown device, a bad camera count, ``syncbox`` without ``d415``.
         RecordingError: ``path`` exists, a device failed or something was dropped.
     """
+    from mocaprig.acquire.camera_backends import open_cameras
     from mocaprig.acquire.davis240c import Davis240C
-    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode
     from mocaprig.acquire.record_session import record_to_file
     from mocaprig.acquire.record_sources import DavisSource, DepthCameraSource, SyncBoxSource
     from mocaprig.acquire.recorder import StreamSource

@@ -20,11 +20,14 @@ from mocaprig import __version__
 from mocaprig.errors import MocaprigError
 from mocaprig.json_values import to_jsonable
 
-__all__ = ["add_json_flag", "emit_json", "main"]
+__all__ = ["Handler", "add_json_flag", "emit_json", "main", "usage_handler"]
 
 _log = logging.getLogger(__name__)
 
 Register = Callable[["argparse._SubParsersAction[argparse.ArgumentParser]"], None]
+#: What every command's ``func`` is: a typed function of the parsed arguments -> exit code
+#: (0 ok, 1 error, 2 usage, 3 data lost, 130 interrupted).
+Handler = Callable[[argparse.Namespace], int]
 
 _EPILOG = """\
 examples:
@@ -41,6 +44,17 @@ def emit_json(obj: Any, *, stream: TextIO | None = None) -> None:
     out = sys.stdout if stream is None else stream
     out.write(json.dumps(to_jsonable(obj), sort_keys=False) + "\n")
     out.flush()
+
+
+def usage_handler(parser: argparse.ArgumentParser) -> Handler:
+    """The one usage handler: for a command group run without a sub-command, print the
+    group's help on stderr and exit 2 (``parser.set_defaults(func=usage_handler(parser))``)."""
+
+    def handler(_args: argparse.Namespace) -> int:
+        parser.print_help(sys.stderr)
+        return 2
+
+    return handler
 
 
 def add_json_flag(parser: argparse.ArgumentParser) -> None:
@@ -83,10 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    func: Callable[[argparse.Namespace], int] | None = getattr(args, "func", None)
-    if func is None:
-        parser.print_help(sys.stderr)
-        return 2
+    func: Handler = getattr(args, "func", None) or usage_handler(parser)
     try:
         return func(args)
     except MocaprigError as err:

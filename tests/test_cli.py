@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -44,3 +45,40 @@ def test_progress_bar_is_silent_when_not_a_terminal(capsys: pytest.CaptureFixtur
     bar(1, 2)
     bar(2, 2)
     assert capsys.readouterr().err == ""
+
+
+def _leaves(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [path]
+    out = []
+    for name, child in subs[0].choices.items():
+        out.extend(_leaves(child, (*path, name)))
+    return out
+
+
+def test_every_command_has_a_handler_and_help_with_examples() -> None:
+    from mocaprig.cli import _build_parser
+
+    parser = _build_parser()
+    leaves = _leaves(parser)
+    assert len(leaves) >= 20
+    missing = []
+    for path in leaves:
+        node = parser
+        for name in path:
+            sub = next(a for a in node._actions if isinstance(a, argparse._SubParsersAction))
+            node = sub.choices[name]
+        if node.get_default("func") is None:
+            missing.append(" ".join(path) + ": no handler")
+        text = node.format_help()
+        if "examples:" not in text and "example:" not in text:
+            missing.append(" ".join(path) + ": no examples in --help")
+    assert not missing, "\n".join(missing)
+
+
+def test_a_group_without_a_subcommand_prints_its_usage_and_exits_2(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["democap"]) == 2
+    assert "usage: mocaprig democap" in capsys.readouterr().err

@@ -9,11 +9,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.progress import ProgressBar, StatusLine
 
 __all__ = [
@@ -107,7 +106,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = dm.add_subparsers(dest="democap_command", metavar="SUBCOMMAND")
-    dm.set_defaults(func=_usage(dm))
+    dm.set_defaults(func=usage_handler(dm))
 
     tr = sub.add_parser(
         "train",
@@ -258,14 +257,6 @@ def _add_rotations(parser: argparse.ArgumentParser) -> None:
         help="rotation ensemble size: the cloud turned by k*180/K deg about the vertical, "
         "K network passes, median (default: %(default)s; 1 = the paper's single shot)",
     )
-
-
-def _usage(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    def handler(args: argparse.Namespace) -> int:
-        parser.print_help(sys.stderr)
-        return 2
-
-    return handler
 
 
 def democap_train(args: argparse.Namespace) -> int:
@@ -468,7 +459,7 @@ def democap_live(args: argparse.Namespace) -> int:
 
     import torch
 
-    from mocaprig.acquire.depth_camera import open_cameras
+    from mocaprig.acquire.camera_backends import open_cameras
     from mocaprig.calib.calibration import read_calibration
     from mocaprig.errors import ValidationError
     from mocaprig.process.democap.infer import DemocapPredictor

@@ -28,7 +28,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from mocaprig.acquire.d415_sync import configure_rig, start_rig
+from mocaprig.acquire.d415_sync import configure_rig, iter_framesets, start_rig
 from mocaprig.acquire.depth_camera import (
     DepthCamera,
     FrameSet,
@@ -40,7 +40,7 @@ from mocaprig.acquire.recorder import Attachment, Recorder
 from mocaprig.acquire.recording_format import SceneUpdateMsg
 from mocaprig.calib.calibration import Calibration, calibration_bytes
 from mocaprig.errors import ProcessingError
-from mocaprig.process.democap.instants import INSTANT_TOLERANCE, InstantGrouper
+from mocaprig.process.democap.instants import INSTANT_TOLERANCE, GroupedInstant, InstantGrouper
 from mocaprig.process.democap.live import (
     CloudPredictor,
     LiveCamera,
@@ -136,43 +136,18 @@ def rig_instants(
     seen = counts if counts is not None else {}
     for label in labels:
         seen.setdefault(label, 0)
-    span_ns = round(seconds * 1e9)
-    t0: int | None = None
-    done: set[str] = set()
-    idle_since: dict[str, float] = {}
 
-    def emit(grouped: Sequence[Any]) -> Iterator[LiveInstant]:
+    def emit(grouped: Sequence[GroupedInstant[FrameSet]]) -> Iterator[LiveInstant]:
         for g in grouped:
             yield LiveInstant(g.instant.t_ref_ns, {c: g.items.get(c) for c in labels})
 
-    while len(done) < len(cameras) and not (stop is not None and stop.is_set()):
-        got = False
-        for cam, label in zip(cameras, labels, strict=True):
-            if label in done:
-                continue
-            fs = cam.poll(0.0)
-            if fs is None:
-                since = idle_since.setdefault(label, time.monotonic())
-                if time.monotonic() - since > stall_s:
-                    _log.warning(
-                        "%s delivered nothing for %.1f s; going on without it", label, stall_s
-                    )
-                    done.add(label)
-                continue
-            idle_since.pop(label, None)
-            got = True
-            host = fs.timing.host_time_ns
-            t0 = host if t0 is None else t0
-            if host - t0 >= span_ns:
-                done.add(label)
-                continue
-            seen[label] += 1
-            stamp = fs.timing.sensor_timestamp_us
-            t_dev = host if stamp is None else unwrap[label](int(stamp)) * 1000
-            t_ref = int(clocks[label].to_reference_ns(np.int64(t_dev)))
-            yield from emit(grouper.push(label, t_ref, t_dev, fs))
-        if not got:
-            time.sleep(0.002)
+    for fs in iter_framesets(cameras, seconds=seconds, stall_s=stall_s, stop=stop):
+        label = DeviceId("d415", fs.serial).label
+        seen[label] += 1
+        stamp = fs.timing.sensor_timestamp_us
+        t_dev = fs.timing.host_time_ns if stamp is None else unwrap[label](int(stamp)) * 1000
+        t_ref = int(clocks[label].to_reference_ns(np.int64(t_dev)))
+        yield from emit(grouper.push(label, t_ref, t_dev, fs))
     yield from emit(grouper.flush())
 
 

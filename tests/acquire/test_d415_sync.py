@@ -12,8 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mocaprig.acquire.camera_backends import open_cameras
 from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker, SyncFlag, run_sync_check
-from mocaprig.acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain, open_cameras
+from mocaprig.acquire.depth_camera import FrameTiming, SyncMode, TimestampDomain
 from mocaprig.cli import main
 from mocaprig.errors import ValidationError
 

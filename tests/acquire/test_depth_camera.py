@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mocaprig.acquire import depth_camera
+from mocaprig.acquire import camera_backends, mocks
+from mocaprig.acquire.camera_backends import CAMERA_BACKENDS, open_cameras, register_camera_backend
 from mocaprig.acquire.depth_camera import (
     ALLOWED_MODES,
-    CAMERA_BACKENDS,
     CameraInfo,
     D415Frame,
     DepthCamera,
@@ -23,8 +23,6 @@ from mocaprig.acquire.depth_camera import (
     SyncMode,
     TimestampDomain,
     check_sync_mode,
-    open_cameras,
-    register_camera_backend,
 )
 from mocaprig.errors import DeviceError, ValidationError
 
@@ -145,14 +143,14 @@ def test_registry_has_realsense_and_mock_and_accepts_more() -> None:
     try:
         assert open_cameras("none") == []
     finally:
-        depth_camera._BACKENDS.pop("none")
+        camera_backends._BACKENDS.pop("none")
     with pytest.raises(ValidationError, match="unknown camera backend"):
         open_cameras("nope")
 
 
 def test_unknown_mock_name_says_how_to_fix() -> None:
     with pytest.raises(DeviceError, match="reinstall mocaprig"):
-        depth_camera.load_mock_factory("no-such-mock")
+        mocks.load_mock_factory("no-such-mock")
 
 
 def test_mock_backend_yields_protocol_cameras() -> None:

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from mocaprig.acquire import davis240c, depth_camera
+from mocaprig.acquire import camera_backends, davis240c, depth_camera
 from mocaprig.acquire.recording import Recording, info
 from mocaprig.cli import main
 from mocaprig.errors import DeviceError
@@ -105,7 +105,7 @@ def test_record_rig_missing_d415_names_it_and_lists_connected(
     def fake_realsense(**_: Any) -> list[Any]:
         return connected
 
-    monkeypatch.setitem(depth_camera._BACKENDS, "realsense", fake_realsense)
+    monkeypatch.setitem(camera_backends._BACKENDS, "realsense", fake_realsense)
     rig = tmp_path / "rig.toml"
     rig.write_text(
         "format_version = 1\n[[d415]]\nserial = '819612070593'\nrole = 'master'\n"

@@ -9,8 +9,8 @@ import sys
 import textwrap
 import threading
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
@@ -36,14 +36,29 @@ class _Blocking:
 
     SCHEMA: ClassVar[SchemaDef] = SyncPulses.SCHEMA
     gate: threading.Event
+    entered: threading.Event = field(default_factory=threading.Event)
 
     @property
     def nbytes(self) -> int:
         return 10
 
     def encode(self) -> bytes:
+        self.entered.set()
         self.gate.wait(10)
         return SyncPulses(1, 2).encode()
+
+
+def _wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    """Wait until ``condition()`` holds (the writer thread got there), failing after a timeout."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting for the writer thread"
+        time.sleep(0.01)
+
+
+def _complete_chunks(path: Path) -> int:
+    with Recording(path) as r:
+        return r.scan.complete_chunks
 
 
 def test_recorder_refuses_existing_path(tmp_path: Path) -> None:
@@ -66,8 +81,9 @@ def test_put_never_blocks_and_counts_drops(tmp_path: Path) -> None:
     with Recorder(p, queue_messages=5) as rec:
         slow = rec.add_stream("/syncbox/pulses", SyncPulses)
         ev = rec.add_stream("/davis/1/events", EventPacket)
-        rec.put(slow, _Blocking(gate))
-        time.sleep(0.2)  # the writer is now stuck in encode()
+        blocking = _Blocking(gate)
+        rec.put(slow, blocking)
+        assert blocking.entered.wait(10)  # the writer is now stuck in encode()
         t0 = time.perf_counter()
         results = [rec.put(ev, _events(i), sequence=i) for i in range(50)]
         elapsed = time.perf_counter() - t0
@@ -89,8 +105,9 @@ def test_queue_bytes_bound_drops_large_messages(tmp_path: Path) -> None:
     with Recorder(tmp_path / "a.mcap", queue_bytes=3_000_000) as rec:
         slow = rec.add_stream("/syncbox/pulses", SyncPulses)
         depth = rec.add_stream("/d415/1/depth", ImageMsg)
-        rec.put(slow, _Blocking(gate))
-        time.sleep(0.2)
+        blocking = _Blocking(gate)
+        rec.put(slow, blocking)
+        assert blocking.entered.wait(10)
         img = ImageMsg(np.zeros((720, 1280), np.uint16), "16UC1")
         ok = [rec.put(depth, img) for _ in range(4)]
         gate.set()
@@ -104,7 +121,7 @@ def test_chunks_reach_the_file_on_the_age_timer(tmp_path: Path) -> None:
         ev = rec.add_stream("/davis/1/events", EventPacket)
         for i in range(10):
             rec.put(ev, _events(i))
-        time.sleep(0.5)
+        _wait_for(lambda: _complete_chunks(p) >= 1)  # the age timer closed a chunk
         with Recording(p) as r:  # no summary yet: linear scan of what is on disk
             assert not r.indexed
             assert r.events("/davis/1/events").size == 1000
@@ -119,7 +136,7 @@ def test_disk_full_stops_cleanly_with_a_clear_error(tmp_path: Path) -> None:
     ev = rec.add_stream("/davis/1/events", EventPacket)
     for i in range(20):
         rec.put(ev, _events(i))
-    time.sleep(0.3)
+    _wait_for(lambda: {s.topic: s.written for s in rec.status().streams}["/davis/1/events"] == 20)
     free[0] = 10**7
     assert rec.stopped.wait(2.0)
     assert not rec.put(ev, _events(99))

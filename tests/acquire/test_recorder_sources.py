@@ -15,7 +15,8 @@ from mocaprig.errors import DeviceError
 
 
 def _mock_d415() -> Any:
-    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode, open_cameras
+    from mocaprig.acquire.camera_backends import open_cameras
+    from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode
 
     try:
         (cam,) = open_cameras("mock", count=1, pacing="asap", seconds=4.0)

@@ -16,8 +16,8 @@ from mocaprig.acquire.depth_camera import (
     StreamConfig,
     SyncMode,
     TimestampDomain,
-    load_mock_factory,
 )
+from mocaprig.acquire.mocks import load_mock_factory
 from mocaprig.drivers_mock.d415 import D415Fault, MockD415, mock_cameras, parse_faults
 from mocaprig.drivers_mock.d415_render import IrSettings, Quality, SceneRenderer, mode_intrinsics
 from mocaprig.drivers_mock.rig import D415Spec, PinholeCamera, look_at, project

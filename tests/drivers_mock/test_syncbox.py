@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import pytest
 import serial
 
-from mocaprig.acquire.depth_camera import load_mock_factory
+from mocaprig.acquire.mocks import load_mock_factory
 from mocaprig.drivers_mock.syncbox import MockSyncBox, mock_syncbox
 from mocaprig.errors import ValidationError
 

@@ -1,7 +1,8 @@
 """Live DeMoCap on the (mock) D415 rig: the driver's frame sets -> instants -> joints -> MCAP.
 
 The mock cameras of the shared calibrated session's seed see the same world, so the session's
-calibration serves them and their joints can be scored against its truth.
+calibration serves them, their joints can be scored against its truth, and a live run must give
+what the replay of the session's recording gives: live and replay are one path.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ import numpy as np
 import pytest
 import torch
 
-from mocaprig.acquire.depth_camera import open_cameras
+from mocaprig.acquire.camera_backends import open_cameras
 from mocaprig.acquire.recording import Recording, info
 from mocaprig.cli import main
 from mocaprig.drivers_mock.truth import democap_truth_at
+from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.live import LiveResult
 from mocaprig.process.democap.live_capture import LiveInstant, run_live
-from mocaprig.process.democap.replay import JOINTS_TOPIC, MARKERS_TOPIC
+from mocaprig.process.democap.replay import JOINTS_TOPIC, MARKERS_TOPIC, run_replay
 from tests.conftest import CalibratedSession
 
 
@@ -44,9 +46,15 @@ def test_live_run_on_the_mock_rig_records_joints_near_the_truth(
     cams = open_cameras("mock", seed=cs.seed, seconds=cs.seconds)
     got: list[tuple[LiveResult, LiveInstant]] = []
     out = tmp_path / "live.mcap"
+    predictor = DemocapPredictor(rotations=2, workers=2)  # the live setting
     try:
         summary = run_live(
-            cams, cs.calibration, seconds=1.0, out=out, on_result=lambda r, i: got.append((r, i))
+            cams,
+            cs.calibration,
+            seconds=1.0,
+            out=out,
+            predictor=predictor,
+            on_result=lambda r, i: got.append((r, i)),
         )
     finally:
         for cam in cams:
@@ -60,7 +68,7 @@ def test_live_run_on_the_mock_rig_records_joints_near_the_truth(
     _, true_j = democap_truth_at(cs.truth, t, clock="vicon")
     pred_j = np.stack([r.prediction.joints_m for r, _ in got if r.prediction is not None])
     mpjpe_mm = float(np.mean(np.linalg.norm(pred_j - true_j, axis=-1)) * 1e3)
-    assert mpjpe_mm < 60.0  # 2-turn live ensemble: ~37 mm measured (docs/democap.md)
+    assert mpjpe_mm < 60.0  # 2-turn live ensemble, 19 joints: 37 mm measured on this seed
     # Written through the recorder: nothing dropped, one scene per instant and topic.
     s = info(out)
     assert s.drops_total == 0
@@ -69,6 +77,12 @@ def test_live_run_on_the_mock_rig_records_joints_near_the_truth(
     with Recording(out) as rec:
         assert "calibration.toml" in [a.name for a in rec.attachments()]
         assert rec.metadata()["democap_live"]["cameras"].count("d415/") == 4
+    # One path: the replay of the recording of the same world gives the same instants and joints.
+    replay = run_replay(cs.session, cs.calib, out=tmp_path / "replay.mcap", predictor=predictor)
+    k = np.searchsorted(replay.t_ref_ns, t)
+    np.testing.assert_array_equal(replay.t_ref_ns[k], t)
+    np.testing.assert_allclose(replay.joints_m[k], pred_j, atol=1e-9)
+    np.testing.assert_array_equal(replay.points_per_instant[k], [r.points for r, _ in got])
 
 
 @pytest.mark.slow

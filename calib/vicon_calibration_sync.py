@@ -1,0 +1,252 @@
+"""The D415 clocks from the Vicon sync channel.
+
+With a sync channel in the Vicon trial (``CalibrationOptions.sync_channel``, default
+``D415_SYNC``: the sync box's toggle output on a Vicon analog input, docs/wiring.md §7), the
+master's clock is the line through the channel's edges paired with its frames
+(``calib.sync_edges.clock_from_sync_edges``, the video clock as the pairing prior), and every
+camera tied to it by frame counters in the pool gets it through its tie plus its trigger delay
+(:func:`sync_clocks`). :func:`sync_channel_inputs` gathers what that needs (:class:`SyncInputs`);
+without the channel, or when it is unusable, the video clocks stay and a note says why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+from mocaprig.acquire.recording import Recording
+from mocaprig.calib.calibration import ClockMapping
+from mocaprig.calib.sync_edges import SyncEdges
+from mocaprig.calib.vicon_calibration_frames import CalibCamera
+from mocaprig.calib.vicon_calibration_options import CalibrationOptions
+from mocaprig.calib.vicon_calibration_pooled_clock import Tie, through_tie
+from mocaprig.errors import CalibrationError, ValidationError
+
+__all__ = ["SyncInputs", "sync_channel_edges", "sync_channel_inputs", "sync_clocks"]
+
+_log = logging.getLogger(__name__)
+
+I64 = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class SyncInputs:
+    """The Vicon sync channel's edges and the D415 master they come from (or why not)."""
+
+    edges: SyncEdges | None
+    master: str | None = None
+    master_frames_ns: I64 = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    frame_delay_ns: int = 0
+    delays_ns: Mapping[str, float] = field(default_factory=dict)
+    note: str = ""
+
+
+def sync_channel_edges(vicon_path: Path, opt: CalibrationOptions) -> tuple[SyncEdges | None, str]:
+    """The edges of the Vicon trial's sync channel (Vicon clock), or ``None`` and a note saying
+    why not (option off, no analog section or no such channel, unreadable or flat channel)."""
+    from mocaprig.calib.sync_edges import find_sync_edges
+    from mocaprig.calib.vicon import ViconFileError, read_c3d_analogs
+    from mocaprig.calib.vicon_times import analog_times_ns
+
+    label = opt.sync_channel
+    fallback = "the D415 clocks come from the video"
+    if label is None:
+        return None, f"clock: sync channel not used (option); {fallback}"
+    if vicon_path.suffix.lower() == ".csv":
+        return None, (
+            f"clock: a Nexus CSV export holds no analog channel (export the trial as C3D to use "
+            f"the sync channel {label!r}); {fallback}"
+        )
+    try:
+        analogs = read_c3d_analogs(vicon_path)
+    except ViconFileError as err:
+        return None, f"clock: no sync channel: {err}; {fallback}"
+    try:
+        values = analogs.channel(label)
+    except ValidationError as err:
+        return None, (
+            f"clock: {err}; {fallback} (drift good to ~10 ppm only: record the sync box's "
+            "toggle output on a Vicon analog input, docs/wiring.md §7)"
+        )
+    name = analogs.labels[analogs.index(label)]
+    try:
+        return find_sync_edges(analog_times_ns(analogs), values, channel=name), ""
+    except CalibrationError as err:
+        return None, f"clock: {err}; {fallback}"
+
+
+def sync_channel_inputs(
+    vicon_path: Path,
+    rec: Recording,
+    cams: Sequence[CalibCamera],
+    frames_ns: Mapping[str, I64],
+    opt: CalibrationOptions,
+) -> SyncInputs:
+    """The sync channel's edges (:func:`sync_channel_edges`), the master's frame stamps (those
+    of the frames read for the calibration: the windows spread over the session pin the line
+    to well under a µs and 0.1 ppm, and reading every ``frame_info`` would decompress the
+    whole recording), its frame delay (half its exposure: pulse at the exposure start, stamp
+    mid-exposure) and, per other camera, its exposure's delay after the master's
+    (``slave_trigger_delay_us`` plus half the exposure difference). A missing or unusable
+    channel gives ``edges=None`` and a note saying why."""
+    fallback = "the D415 clocks come from the video"
+    edges, note = sync_channel_edges(vicon_path, opt)
+    if edges is None:
+        return SyncInputs(None, note=note)
+    name = edges.channel
+    master = next((c for c in cams if c.sync_mode == 1), None)
+    if master is None:
+        return SyncInputs(
+            None,
+            note=(
+                f"clock: sync channel {name!r} found but no calibrated D415 was recorded as the "
+                f"sync master (sync_mode 1); {fallback}"
+            ),
+        )
+
+    def exposure_ns(c: CalibCamera) -> float | None:
+        return None if c.exposure_us is None else float(c.exposure_us) * 1e3
+
+    exp_m = exposure_ns(master)
+    if exp_m is None:
+        return SyncInputs(
+            None,
+            note=f"clock: {master.name}'s metadata has no options.exposure_us; {fallback}",
+        )
+    delays = {}
+    for c in cams:
+        if c is master:
+            continue
+        exp_c = exposure_ns(c)
+        delays[c.name] = opt.slave_trigger_delay_us * 1e3 + 0.5 * ((exp_c or exp_m) - exp_m)
+    return SyncInputs(
+        edges,
+        master.name,
+        np.unique(np.asarray(frames_ns[master.name], dtype=np.int64)),
+        round(0.5 * exp_m),
+        delays,
+    )
+
+
+#: Whole edge periods tried either side of a sync-channel mapping (see :func:`sync_clocks`).
+_SYNC_PERIOD_SHIFTS: Final = 3
+
+
+def sync_clocks(
+    sync: SyncInputs,
+    mappings: Mapping[str, ClockMapping],
+    ties: Mapping[str, Tie],
+    opt: CalibrationOptions,
+    score: Callable[[str, ClockMapping], float] | None = None,
+) -> tuple[dict[str, ClockMapping], list[str]]:
+    """The D415 clocks from the sync channel: the master's by its edges (the video mapping as
+    the pairing prior), every camera tied to the pool's pivot (``ties``, from
+    :func:`pooled_clocks`) through its tie, the master's tie inverted and the master's mapping,
+    plus its exposure's delay after the master's. Cameras without a tie keep ``mappings``
+    (video), and so does every camera when the master's fit fails; notes say so.
+
+    The edges fix each clock only up to whole periods (a periodic train pairs as well one edge
+    over): when the video prior is off by more than a quarter period (on the 30 s seed-11
+    session the master's pooled video clock was 41 ms off), or a tie's counter shift is one
+    frame off, the mapping is a whole period out. So each camera's mapping is moved by the
+    number of edge periods (±:data:`_SYNC_PERIOD_SHIFTS`) whose ``score`` (the reprojection cost
+    of its frames) is lowest; no move on a tie."""
+    from mocaprig.calib.sync_edges import clock_from_sync_edges
+
+    out = dict(mappings)
+    m, edges = sync.master, sync.edges
+    if m is None or edges is None or m not in mappings:
+        return out, []
+    period = float(np.median(np.diff(np.sort(edges.t_ns)))) if edges.count > 1 else 0.0
+    moved: list[str] = []
+
+    def best_period(name: str, mapping: ClockMapping) -> ClockMapping:
+        if score is None or not period > 0:
+            return mapping
+        cands = [
+            dataclasses.replace(mapping, offset_ns=mapping.offset_ns + round(k * period))
+            for k in range(-_SYNC_PERIOD_SHIFTS, _SYNC_PERIOD_SHIFTS + 1)
+        ]
+        costs = [score(name, c) for c in cands]
+        k = int(np.argmin(costs))
+        if costs[k] < 0.99 * costs[_SYNC_PERIOD_SHIFTS]:
+            shift = k - _SYNC_PERIOD_SHIFTS
+            moved.append(f"{name} {shift:+d}")
+            _log.info("%s: sync clock moved by %+d edge periods (reprojection cost)", name, shift)
+            return cands[k]
+        return mapping
+
+    try:
+        mmap = clock_from_sync_edges(
+            m,
+            edges,
+            sync.master_frames_ns,
+            prior=mappings[m],
+            frame_delay_ns=sync.frame_delay_ns,
+            edge_delay_ns=round(opt.sync_latency_us * 1e3),
+        )
+    except CalibrationError as err:
+        _log.warning("%s", err)
+        return out, [f"clock: {err}; the D415 clocks come from the video"]
+    mmap = best_period(m, mmap)
+    out[m] = mmap
+    done = [m]
+    tm = ties.get(m)
+    if tm is not None and len(ties) >= 2:
+        # The pivot's clock → the master's (its tie inverted) → Vicon (the sync line).
+        anchor_p = mmap.anchor_ns + tm.a_ns + tm.s * (mmap.anchor_ns - tm.centre_ns)
+        pivot_map = ClockMapping(
+            device="pivot",
+            reference=mmap.reference,
+            offset_ns=round(mmap.anchor_ns + mmap.offset_ns - anchor_p),
+            drift_ppm=((1.0 + mmap.drift_ppm * 1e-6) / (1.0 + tm.s) - 1.0) * 1e6,
+            anchor_ns=round(anchor_p),
+            drift_sigma_ppm=mmap.drift_sigma_ppm,
+        )
+        for c, tie in ties.items():
+            if c == m or c not in out:
+                continue
+            mc = through_tie(
+                c,
+                tie,
+                pivot_map,
+                delay_ns=sync.delays_ns.get(c, 0.0),
+                method=f"{mmap.method} via {m} (frame tie)",
+            )
+            sigma = math.hypot(
+                mmap.offset_sigma_ns,
+                tie.rms_ns / math.sqrt(max(tie.pairs, 1)),
+                tm.rms_ns / math.sqrt(max(tm.pairs, 1)),
+            )
+            out[c] = best_period(c, dataclasses.replace(mc, offset_sigma_ns=sigma))
+            done.append(c)
+    notes = [
+        f"clock: {m} from the Vicon sync channel {edges.channel!r} ({edges.count} edges, "
+        f"τ {edges.tau_ns / 1e3:.0f} µs; ±{mmap.offset_sigma_ns / 1e3:.1f} µs, "
+        f"±{mmap.drift_sigma_ppm:.3f} ppm)"
+        + (f", {len(done) - 1} more D415 through their frame ties" if len(done) > 1 else "")
+    ]
+    if moved:
+        notes.append(
+            "clock: whole edge periods chosen by the reprojection cost (the video prior or a "
+            f"frame tie was a period out): {', '.join(moved)}"
+        )
+    for c in mappings:
+        if c not in done:
+            notes.append(f"{c}: video clock: it is not tied to {m}'s frames")
+    # Cross-check against the video clocks (a wrong trigger delay or tie shows here).
+    diffs = []
+    for c in done:
+        t = np.array([out[c].anchor_ns], dtype=np.int64)
+        d_us = float(out[c].to_reference_ns(t)[0] - mappings[c].to_reference_ns(t)[0]) / 1e3
+        diffs.append(f"{c} {d_us:+.0f} µs / {out[c].drift_ppm - mappings[c].drift_ppm:+.1f} ppm")
+    notes.append("clock: sync channel minus video clock: " + "; ".join(diffs))
+    return out, notes

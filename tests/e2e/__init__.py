@@ -1,0 +1,1 @@
+"""End-to-end tests: whole commands across packages, on the simulated rig."""
