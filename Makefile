@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.mocaprig-installed
 TORCH_SPEC ?= torch==2.13.0
 DEMO_OUT ?= demo-out
 
-.PHONY: install demo test lint typecheck unit bench clean
+.PHONY: install demo test lint typecheck unit bench clean firmware
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,11 @@ test: lint typecheck unit
 
 bench: $(STAMP)
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# The sync box firmware for the Uno and the Nano (build/firmware/<board>/syncbox.hex) and its
+# interrupt latencies; needs gcc-avr binutils-avr avr-libc arduino-core-avr (Debian), not .venv.
+firmware:
+	$(PYTHON) firmware/syncbox/build.py --out build/firmware --latency
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .mypy_cache .ruff_cache

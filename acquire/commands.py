@@ -366,6 +366,8 @@ def davis_config(
     print(f"DAVIS240C {serial_no}: defaults with bias preset {bias_preset!r} written")
     for row in rows:
         ok = "ok" if row["readback"] == row["value"] else f"reads back {row['readback']}"
+        if row["name"] == "MUX.TIMESTAMP_RESET" and row["value"]:
+            ok = "pulsed (1 then 0: the device timestamps restart at 0)"
         print(f"  {row['name']} ({row['module']}/{row['param']}) = {row['value']}: {ok}")
     return 0
 
@@ -523,8 +525,13 @@ Prober = Callable[[bool], list[DeviceListing]]
 def probe_davis(mock: bool) -> list[DeviceListing]:
     """DAVIS cameras on the bus (or the mock's) as :class:`DeviceListing` rows."""
     from mocaprig.acquire.davis240c import find_davis, load_mock_backend
+    from mocaprig.acquire.doctor import Verdict, check_libusb
 
     backend = load_mock_backend() if mock else None
+    libusb = check_libusb()
+    if backend is None and libusb.verdict is Verdict.FIX:
+        msg = f"{libusb.detail}: {libusb.fix}"
+        raise DeviceError(msg)
     return [
         DeviceListing(
             kind="DAVIS240C" if d.product_id == 0x841B else "DAVIS (FX3)",

@@ -57,6 +57,8 @@ def _parse_mode(text: str) -> StreamConfig:
 
 
 def _open(*, mock: bool, seed: int, fault: str | None, seconds: float | None) -> list[DepthCamera]:
+    """The real cameras, or the mock rig (``no-metadata`` as a fault emulates a kernel without
+    the metadata patch)."""
     if fault is not None and not mock:
         msg = "--mock-fault needs --mock"
         raise ValidationError(msg)
@@ -118,9 +120,13 @@ def stream(
     mock: bool = False,
     seed: int = 0,
     fault: str | None = None,
+    allow_no_metadata: bool = False,
     as_json: bool = False,
 ) -> int:
-    """``mocaprig d415 stream``: fps and counter-gap drops per camera, live and at the end."""
+    """``mocaprig d415 stream``: fps and counter-gap drops per camera, live and at the end.
+
+    Synced cameras without frame metadata are refused unless ``allow_no_metadata``.
+    """
     cameras = _open(mock=mock, seed=seed, fault=fault, seconds=seconds)
     rates: dict[str, _Rate] = {c.info.serial: _Rate() for c in cameras}
     next_print = [1.0]
@@ -148,7 +154,7 @@ def stream(
                 v.window_frames = 0
 
     try:
-        configure_rig(cameras, stream=mode, options=options)
+        configure_rig(cameras, stream=mode, options=options, allow_no_metadata=allow_no_metadata)
         start_rig(cameras)
         try:
             capture(cameras, seconds=seconds, on_frameset=on_frameset)
@@ -177,6 +183,8 @@ def _print_report(report: SyncReport) -> None:
         parts = [f"{serial} {c.role.name.lower():7s} {c.frames} frames, {c.drops} drops"]
         if c.drift_ppm is not None:
             parts.append(f"drift {c.drift_ppm:+.1f} ppm")
+        if c.walk_ppm is not None:
+            parts.append(f"walk {c.walk_ppm:+.1f} ppm ({c.rate_reference})")
         if c.max_phase_error_us is not None:
             parts.append(f"max phase error {c.max_phase_error_us:.0f} µs")
         if c.free_running_since_s is not None:
@@ -184,8 +192,19 @@ def _print_report(report: SyncReport) -> None:
         if c.flags:
             parts.append("flags: " + ", ".join(f.value for f in c.flags))
         print("  " + "; ".join(parts))
-    if any(SyncFlag.NO_HARDWARE_TIMESTAMPS in c.flags for c in report.cameras.values()):
+    flags = {f for c in report.cameras.values() for f in c.flags}
+    if SyncFlag.NO_HARDWARE_TIMESTAMPS in flags:
         print(f"no hardware timestamps: {METADATA_HINT}")
+    if SyncFlag.FREE_RUNNING in flags:
+        print(
+            "free-running: a synced slave's hardware timestamps drift slowly against the "
+            "master's and its exposures do not walk against them; check the sync cable "
+            "(docs/wiring.md)"
+        )
+    if SyncFlag.SYNC_UNVERIFIED in flags:
+        print("sync-unverified: the crystals agree; verify with the LED test (docs/d415-timing.md)")
+    if SyncFlag.TOO_SHORT in flags:
+        print("too-short: run longer (--seconds 10) for the rate check")
 
 
 def check_sync(
@@ -306,6 +325,13 @@ def register_d415(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         formatter_class=raw,
     )
     _add_common(p_stream, capture_opts=True)
+    p_stream.add_argument(
+        "--allow-no-metadata",
+        action="store_true",
+        help="stream synced cameras even without per-frame metadata (no hardware counters or "
+        "timestamps: sync unverifiable, drops invisible; the fix is the RealSense kernel patch "
+        "or the RSUSB backend)",
+    )
     p_stream.set_defaults(
         func=lambda a: stream(
             seconds=a.seconds,
@@ -314,6 +340,7 @@ def register_d415(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
             mock=a.mock,
             seed=a.seed,
             fault=a.mock_fault,
+            allow_no_metadata=a.allow_no_metadata,
             as_json=a.json,
         )
     )

@@ -8,18 +8,34 @@ camera's framesets, in any interleaving across cameras, and checks:
 * **per-camera sanity**: ``0 ≤ frame_timestamp − sensor_timestamp ≤ 10⁶/fps`` µs (§2.6.2);
 * **counter continuity**: ``frame_counter`` +1 per frame; gaps are drops, backward steps are
   counter resets (ESD, §2.4) (§2.6.3);
-* **slave vs master**: frames are paired by a constant counter offset (established once by
-  time: global time when both cameras report it, else host receive time; §2.5), and each slave's
-  hardware timestamps are fitted against the master's as ``t_slave = offset + (1 + drift)·t_master``
-  (its own crystal: drift of tens of ppm is expected, §2.5). The residual of each new pair
-  against a fit of the pairs older than one second is the **phase error**. A free-running slave
-  shows as a phase jump (its self-trigger timeout) or a phase walk (its own period, i.e. a
-  different rate). Both are caught by a gate (``|r| > max(phase_tolerance_us, gate_sigma·σ)``)
-  and a two-sided CUSUM on ``r/σ`` (σ: the locked jitter); the CUSUM's start dates the onset.
-  A rate test compares the slope of each 2 s block with the recent blocks' slopes, for slow
-  walks that began before the fit had much history;
-* a slave whose fitted drift is ~0 ppm gets a (non-failing) ``zero-drift`` warning: a camera
-  that was never triggered steps one nominal period of its own clock per frame, like the master;
+* **slave vs master, phase**: frames are paired by a constant counter offset (established once
+  by time: global time when both cameras report it, else host receive time; §2.5), and each
+  slave's hardware timestamps are fitted against the master's as
+  ``t_slave = offset + (1 + drift)·t_master``. The residual of each new pair against a fit of
+  the pairs older than one second is the **phase error**. A slave that *loses* its trigger shows
+  a phase jump (its self-trigger timeout) or a phase walk (its own period, i.e. a different
+  rate). Both are caught by a gate (``|r| > max(phase_tolerance_us, gate_sigma·σ)``) and a
+  two-sided CUSUM on ``r/σ`` (σ: the locked jitter); the CUSUM's start dates the onset. A rate
+  test compares the slope of each 2 s block with the recent blocks' slopes, for slow walks that
+  began before the fit had much history;
+* **slave vs master, rates** (Intel's check, the "somewhat counter-intuitive aspect of time
+  stamps" of the multi-camera white paper, quoted in realsense-ros #2323 and #1889 and
+  librealsense #14131): each camera stamps frames with its own crystal. A *synced* slave exposes
+  when the master does, so its hardware timestamps drift against the master's at the crystals'
+  rate difference (tens of ppm); a slave that was *never* triggered steps one nominal period of
+  its own clock per frame, like the master, so the difference of their hardware timestamps
+  stays constant (drift ≈ 0). The checker does not rely on that premise alone: it also measures
+  each crystal against the host (the SDK's global time when both cameras report it, else the
+  lower envelope of the host receive times) and from it the **walk** of the slave's exposures
+  against the master's in host time, ``(1 + drift)/(1 + crystal) − 1``: 0 when locked, the
+  period mismatch when free-running, in either timestamp domain. A walk resolved away from 0
+  flags ``free-running``; a hardware drift of ≈ 0 (Intel's "constant difference") flags
+  ``free-running`` too, unless the walk is measured ≈ 0 as well (the two crystals agree: then
+  timestamps cannot tell, ``sync-unverified``, verify with the LED test); a run too short to
+  resolve the drift gets the non-failing ``too-short`` warning (run 10 s). With global time on,
+  the rule reads the other way round on ``timestamp_ms``: synced cameras' global timestamps
+  keep a constant difference and free-running ones drift (#1889: the offset is small with
+  global time off);
 * **identical timestamps** across cameras mean sync is off or time is host-made (§0.2).
 
 Times in reports are seconds on the master's hardware clock since its first frame.
@@ -37,10 +53,14 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
+import numpy as np
+import numpy.typing as npt
+
 from mocaprig.acquire.depth_camera import (
     DepthCamera,
     FrameSet,
     FrameTiming,
+    MetadataPolicy,
     SensorOptions,
     StreamConfig,
     SyncMode,
@@ -85,21 +105,27 @@ class SyncFlag(enum.Enum):
     NOT_SYNCED = "not-synced"
     UNMATCHED = "unmatched"
     FREE_RUNNING = "free-running"
+    """The slave captures on its own timer: a phase jump or walk, its exposures walking against
+    the master's in host time, or hardware timestamps keeping a constant difference with the
+    master's (Intel: synced cameras' timestamps drift apart)."""
     IDENTICAL_TIMESTAMPS = "identical-timestamps"
-    ZERO_DRIFT = "zero-drift"
-    """Warning: a slave's clock runs at exactly the master's rate. A free-running camera steps
-    exactly one nominal period of its own clock per frame, like the master, so a slave that was
-    never triggered (sync cable not connected) shows ~0 ppm; two crystals can also agree by
-    chance (a few % of pairs). Verify with a scope or the LED test (realsense-d415.md §2.6)."""
+    SYNC_UNVERIFIED = "sync-unverified"
+    """The timestamps cannot tell a locked slave from a free-running one: its hardware drift and
+    its walk against the master are both ≈ 0, i.e. the two crystals agree within the resolution
+    (a few % of camera pairs). Verify with the LED test (docs/d415-timing.md)."""
+    TOO_SHORT = "too-short"
+    """Warning: the run is too short to resolve a slave's rates (the drift's standard error
+    exceeds ``rate_tolerance_ppm``), so Intel's rate check was not made; run longer (10 s)."""
 
 
 FAILING_FLAGS: Final = frozenset(SyncFlag) - {
     SyncFlag.FRAME_DROPS,
     SyncFlag.COUNTER_RESET,
-    SyncFlag.ZERO_DRIFT,
+    SyncFlag.TOO_SHORT,
 }
 """Flags that make a check fail. Drops up to ``max_drop_fraction``, counter resets (which the
-recorder handles) and the zero-drift warning are reported but do not by themselves fail it."""
+recorder handles) and a run too short for the rate check are reported but do not by themselves
+fail it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,10 +163,14 @@ class SyncCheckConfig:
     max_drop_fraction: float = 0.01
     """Drops above this fraction of the expected frames fail the check."""
     max_timestamp_order_fraction: float = 0.01
-    zero_drift_ppm: float = 1.0
-    """A slave whose fitted drift is within this of 0 ppm gets the ``zero-drift`` warning."""
-    zero_drift_min_s: float = 5.0
-    """…once this many seconds of locked pairs back the fit."""
+    rate_tolerance_ppm: float = 1.0
+    """Rates closer than this (ppm) count as equal (hardware drift ≈ 0, walk ≈ 0)."""
+    rate_sigmas: float = 4.0
+    """Standard errors a rate must lie beyond ``rate_tolerance_ppm`` to count as resolved."""
+    global_time_min_s: float = 2.0
+    """Seconds of ``global_time`` frames per camera before its crystal is read from them."""
+    envelope_bins: int = 10
+    """Time bins of the lower-envelope fit of host receive times (no global time)."""
 
     def __post_init__(self) -> None:
         check_positive(self.fps, name="fps")
@@ -197,7 +227,14 @@ class CameraSyncReport:
     timestamp_domain: TimestampDomain | None
     matched_pairs: int
     drift_ppm: float | None
-    """Slave clock rate vs the master's, ``(dt_slave/dt_master − 1)·10⁶`` (locked pairs)."""
+    """Hardware-timestamp rate vs the master's, ``(dt_slave/dt_master − 1)·10⁶`` (locked pairs):
+    the crystals' difference when synced, ≈ 0 when free-running (Intel's check)."""
+    crystal_ppm: float | None
+    """The slave's crystal vs the master's, measured against the host (``rate_reference``)."""
+    walk_ppm: float | None
+    """Rate of the slave's exposures against the master's in host time: ≈ 0 when locked."""
+    rate_reference: str | None
+    """``"global-time"`` or ``"host-arrival"``: what ``crystal_ppm`` was measured against."""
     offset_us: float | None
     """Fitted slave − master timestamp offset at the first pair (µs, includes counter offset)."""
     jitter_us: float | None
@@ -242,6 +279,9 @@ class SyncReport:
                 else c.timestamp_domain.value,
                 "matched_pairs": c.matched_pairs,
                 "drift_ppm": c.drift_ppm,
+                "crystal_ppm": c.crystal_ppm,
+                "walk_ppm": c.walk_ppm,
+                "rate_reference": c.rate_reference,
                 "offset_us": c.offset_us,
                 "jitter_us": c.jitter_us,
                 "max_phase_error_us": c.max_phase_error_us,
@@ -322,6 +362,10 @@ class _Cam:
     last_ts_us: int | None = None
     epoch: int = 0
     """Bumped at each counter reset (pairing is re-established)."""
+    host_samples: list[tuple[int, int]] = field(default_factory=list)
+    """(unwrapped hardware µs, host receive ns) of every frame: the crystal vs the host."""
+    global_samples: list[tuple[int, float]] = field(default_factory=list)
+    """(unwrapped hardware µs, global-time µs) of every ``global_time`` frame."""
     # master only: counter -> (ts_us, host_ns, timestamp_ms, domain)
     history: OrderedDict[int, tuple[int, int, float, TimestampDomain]] = field(
         default_factory=OrderedDict
@@ -369,6 +413,59 @@ class _Link:
     block_start: float = 0.0
     blocks: deque[tuple[float, float]] = field(default_factory=deque)
     """(slope, standard error) of the recent locked blocks."""
+
+
+def _span_s(samples: Sequence[tuple[int, float]]) -> float:
+    """Seconds of device time the samples cover."""
+    return 0.0 if len(samples) < 2 else (samples[-1][0] - samples[0][0]) / 1e6
+
+
+def _line(x: npt.NDArray[np.float64], y: npt.NDArray[np.float64]) -> tuple[float, float, float]:
+    """Least-squares ``(slope, intercept, residual σ)`` of ``y`` on ``x``."""
+    mx, my = float(x.mean()), float(y.mean())
+    vxx = float(((x - mx) ** 2).sum())
+    slope = float(((x - mx) * (y - my)).sum() / vxx)
+    res = y - (my + slope * (x - mx))
+    dof = max(1, x.size - 2)
+    return slope, my - slope * mx, float(math.sqrt(float((res**2).sum()) / dof))
+
+
+def _ols(samples: Sequence[tuple[int, float]]) -> tuple[float, float] | None:
+    """``(dy/dx, standard error)`` of (device µs, global-time µs) samples."""
+    if len(samples) < 10:
+        return None
+    arr = np.asarray(samples, np.float64)
+    x, y = arr[:, 0] - arr[0, 0], arr[:, 1] - arr[0, 1]
+    if float(np.ptp(x)) <= 0:
+        return None
+    slope, _b, sigma = _line(x, y)
+    se = max(sigma, 1.0) / math.sqrt(float(((x - x.mean()) ** 2).sum()))
+    return slope, se
+
+
+def _lower_envelope(samples: Sequence[tuple[int, int]], bins: int) -> tuple[float, float] | None:
+    """``(host µs per device µs, standard error)`` from (device µs, host receive ns) samples.
+
+    Host receive times are capture + transfer + a latency that is never below its minimum, so
+    the lower envelope, not the mean, follows the clocks: the minimum of each time bin (after
+    removing the current slope estimate) is fitted, twice.
+    """
+    if len(samples) < 4 * max(3, bins):
+        return None
+    arr = np.asarray(samples, np.float64)
+    x = arr[:, 0] - arr[0, 0]
+    u = (arr[:, 1] - arr[0, 1]) / 1e3 - x  # host µs minus device µs
+    if float(np.ptp(x)) <= 0:
+        return None
+    slope, _b, _s = _line(x, u)
+    chunks = np.array_split(np.arange(x.size), max(3, bins))
+    se = math.inf
+    for _ in range(2):
+        picks = np.array([c[np.argmin(u[c] - slope * x[c])] for c in chunks if c.size])
+        xs, us = x[picks], u[picks]
+        slope, _b, sigma = _line(xs, us)
+        se = max(sigma, 1.0) / math.sqrt(float(((xs - xs.mean()) ** 2).sum()))
+    return 1.0 + slope, se
 
 
 class SyncChecker:
@@ -460,6 +557,11 @@ class SyncChecker:
         if cam.first_ts_us is None:
             cam.first_ts_us = ts
         cam.last_ts_us = ts
+        cam.host_samples.append((ts, timing.host_time_ns))
+        if timing.timestamp_domain is TimestampDomain.GLOBAL_TIME and math.isfinite(
+            timing.timestamp_ms
+        ):
+            cam.global_samples.append((ts, timing.timestamp_ms * 1e3))
         item = _Pending(
             counter, ts, timing.host_time_ns, timing.timestamp_ms, timing.timestamp_domain
         )
@@ -720,6 +822,67 @@ class SyncChecker:
             return 0.0
         return (m.last_ts_us - m.first_ts_us) / 1e6
 
+    def _host_rates(self, a: _Cam, b: _Cam) -> tuple[float, float, float, float, str] | None:
+        """Host time per device µs of cameras ``a`` and ``b`` with standard errors, and the
+        reference: global time when both have enough of it, else the host receive times."""
+        need = self.config.global_time_min_s
+        if all(_span_s(c.global_samples) >= need for c in (a, b)):
+            fits = [_ols(c.global_samples) for c in (a, b)]
+            ref = "global-time"
+        else:
+            fits = [_lower_envelope(c.host_samples, self.config.envelope_bins) for c in (a, b)]
+            ref = "host-arrival"
+        fa, fb = fits
+        if fa is None or fb is None:
+            return None
+        return fa[0], fa[1], fb[0], fb[1], ref
+
+    def _rate_verdict(
+        self, link: _Link, sums: _Sums, fit: tuple[float, float] | None
+    ) -> tuple[float | None, float | None, str | None, SyncFlag | None] | None:
+        """Intel's rate check for one slave: ``(crystal_ppm, walk_ppm, reference, flag)``.
+
+        ``drift`` (hardware timestamps vs the master's), ``crystal`` (the slave's crystal vs the
+        master's, against the host) and ``walk = (1 + drift)/(1 + crystal) − 1`` (the slave's
+        exposures vs the master's in host time): locked means walk ≈ 0 and, per Intel, a drift
+        away from 0; free-running means a walk, or a drift of ≈ 0 that the walk cannot excuse.
+        """
+        cfg = self.config
+        is_slave = link.cam.role is SyncMode.SLAVE
+        if not is_slave or fit is None or sums.n < cfg.warmup_pairs or sums.vxx() <= 0:
+            return None
+        tol, k = cfg.rate_tolerance_ppm * 1e-6, cfg.rate_sigmas
+        sigma = math.sqrt(link.sigma2) if link.sigma2 is not None else cfg.jitter_floor_us
+        drift, sd_drift = fit[1] - 1.0, sigma / math.sqrt(sums.vxx())
+        rates = self._host_rates(self._cams[self._ref], link.cam)
+        crystal = walk = None
+        reference: str | None = None
+        sd_walk = math.inf
+        if rates is not None:
+            r_m, se_m, r_s, se_s, reference = rates
+            crystal = r_m / r_s - 1.0
+            sd_crystal = math.hypot(se_m / r_m, se_s / r_s)
+            walk = (1.0 + drift) / (1.0 + crystal) - 1.0
+            sd_walk = math.hypot(sd_drift, sd_crystal)
+        flag: SyncFlag | None = None
+        if walk is not None and abs(walk) > tol + k * sd_walk:
+            flag = SyncFlag.FREE_RUNNING  # its exposures walk against the master's
+        elif abs(drift) <= tol + k * sd_drift:
+            walk_zero = walk is not None and abs(walk) <= tol + k * sd_walk and sd_walk <= tol
+            if sd_drift > tol:
+                flag = SyncFlag.TOO_SHORT  # the drift is not resolved yet
+            elif walk_zero:
+                flag = SyncFlag.SYNC_UNVERIFIED  # the two crystals agree
+            else:
+                flag = SyncFlag.FREE_RUNNING  # Intel: a constant difference is not synced
+        ppm = 1e6
+        return (
+            None if crystal is None else crystal * ppm,
+            None if walk is None else walk * ppm,
+            reference,
+            flag,
+        )
+
     def health(self) -> SyncHealth:
         """Live summary (cheap; call it once a second)."""
         cams: dict[str, CameraHealth] = {}
@@ -756,6 +919,8 @@ class SyncChecker:
         for serial, cam in self._cams.items():
             link = self._links.get(serial)
             drift = offset = jitter = max_phase = since = detected = None
+            crystal = walk = None
+            reference: str | None = None
             pairs = 0
             flags = self._flags(serial, final=True)
             if link is not None:
@@ -776,14 +941,13 @@ class SyncChecker:
                 if link.pairs > 1:
                     max_phase = link.max_phase
                 since, detected = link.free_since, link.free_detected
-                if (
-                    drift is not None
-                    and since is None
-                    and not link.identical_flag
-                    and sums.n >= self.config.zero_drift_min_s * self.config.fps
-                    and abs(drift) < self.config.zero_drift_ppm
-                ):
-                    flags = (*flags, SyncFlag.ZERO_DRIFT)
+                verdict = self._rate_verdict(link, sums, fit)
+                if verdict is not None:
+                    crystal, walk, reference, flag = verdict
+                    if flag is not None and since is None and not link.identical_flag:
+                        flags = tuple(sorted({*flags, flag}, key=lambda f: f.value))
+                        if flag is SyncFlag.FREE_RUNNING:
+                            since, detected = self._t_s(link.x0), self._elapsed()
             cams[serial] = CameraSyncReport(
                 serial=serial,
                 role=cam.role,
@@ -794,6 +958,9 @@ class SyncChecker:
                 timestamp_domain=cam.domain,
                 matched_pairs=pairs,
                 drift_ppm=drift,
+                crystal_ppm=crystal,
+                walk_ppm=walk,
+                rate_reference=reference,
                 offset_us=offset,
                 jitter_us=jitter,
                 max_phase_error_us=max_phase,
@@ -822,11 +989,17 @@ def configure_rig(
     options: SensorOptions | None = None,
     master: str | None = None,
     external_trigger: bool = False,
+    allow_no_metadata: bool = False,
 ) -> dict[str, SyncMode]:
     """Configure every camera in one mode: ``master`` (default: the first) mode 1, others mode 2.
 
     With ``external_trigger`` every camera is a slave (mode 2) of the sync box. A single camera
     without external trigger runs in mode 0. Returns serial → sync mode.
+
+    Without per-frame metadata (no kernel patch, no RSUSB backend) a synced camera refuses to
+    deliver frames (:class:`~mocaprig.errors.DeviceError` at its first frame: sync cannot be
+    verified, drops are invisible) unless ``allow_no_metadata`` is set; either way the run is
+    announced by a warning naming the fix.
     """
     stream = StreamConfig() if stream is None else stream
     options = SensorOptions() if options is None else options
@@ -851,6 +1024,8 @@ def configure_rig(
         else:
             mode = SyncMode.MASTER if serial == master else SyncMode.SLAVE
         cam.configure(stream=stream, options=options, sync_mode=mode)
+        if isinstance(cam, MetadataPolicy):
+            cam.allow_no_metadata = allow_no_metadata
         roles[serial] = mode
     return roles
 
@@ -945,11 +1120,17 @@ def run_sync_check(
     """Configure (first camera = master), start, verify sync for ``seconds``, stop.
 
     ``on_health`` is called about once per second of capture with the live summary. With
-    ``external_trigger`` every camera is a slave of the sync box (start it before).
+    ``external_trigger`` every camera is a slave of the sync box (start it before). Cameras
+    without frame metadata are let through (``allow_no_metadata``): the check reports them
+    (``no-hardware-timestamps``) instead of refusing.
     """
     stream = StreamConfig() if stream is None else stream
     roles = configure_rig(
-        cameras, stream=stream, options=options, external_trigger=external_trigger
+        cameras,
+        stream=stream,
+        options=options,
+        external_trigger=external_trigger,
+        allow_no_metadata=True,
     )
     checker = SyncChecker(
         roles,

@@ -44,8 +44,10 @@ from typing import Any, BinaryIO, Final, Self
 from mocaprig.acquire.davis240c_config import (
     ApsParam,
     BiasPreset,
+    ChipParam,
     DavisSettings,
     DeviceClocks,
+    DvsFilters,
     DvsParam,
     ExtInputParam,
     ImuParam,
@@ -56,7 +58,7 @@ from mocaprig.acquire.davis240c_config import (
     UsbParam,
     default_config_writes,
 )
-from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket
+from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket, SensorOrientation
 from mocaprig.acquire.davis240c_discovery import (
     UDEV_HINT,
     UDEV_RULE,
@@ -120,6 +122,25 @@ REQUIRED_LOGIC_VERSION: Final = 18
 REQUIRED_LOGIC_PATCH: Final = 1
 _MAX_MULTIPLE: Final = 85  # entries per 0xC2 request (510 bytes; note §2)
 _CHIP_ID_DAVIS240C: Final = 2
+#: SYSINFO CHIP_IDENTIFIER values (note §3.6), for the messages.
+_CHIP_NAMES: Final = {
+    0: "DAVIS240A",
+    1: "DAVIS240B",
+    2: "DAVIS240C",
+    3: "DAVIS128",
+    4: "DAVIS346A",
+    5: "DAVIS346B",
+    6: "DAVIS640",
+    7: "DAVIS640H",
+    8: "DAVIS208",
+    9: "DAVIS346C",
+}
+_DVS_SIZE: Final = (240, 180)
+#: libcaer keeps these two equal (``davisConfigSet`` APS GLOBAL_SHUTTER, note §3.3).
+_GLOBAL_SHUTTER_PAIR: Final = (
+    (int(Module.APS), int(ApsParam.GLOBAL_SHUTTER)),
+    (int(Module.BIAS), int(ChipParam.GLOBAL_SHUTTER)),
+)
 
 _FLASH_HINT = (
     "reflash it with iniVation's Flashy tool (part of DV) to FX2 firmware "
@@ -162,6 +183,24 @@ class DavisInfo:
     imu_orientation: int
     ext_input_has_generator: bool
     clocks: DeviceClocks
+
+    @property
+    def orientation(self) -> SensorOrientation:
+        """The ORIENTATION_INFO registers as the decoder applies them."""
+        return SensorOrientation.from_registers(
+            self.dvs_orientation, self.aps_orientation, self.imu_orientation
+        )
+
+    @property
+    def dvs_filters(self) -> DvsFilters:
+        """The DVS filters the logic has (HAS_* registers)."""
+        return DvsFilters(
+            pixel=self.dvs_has_pixel_filter,
+            background_activity=self.dvs_has_background_activity_filter,
+            roi=self.dvs_has_roi_filter,
+            skip=self.dvs_has_skip_filter,
+            polarity=self.dvs_has_polarity_filter,
+        )
 
     @property
     def device_string(self) -> str:
@@ -217,8 +256,11 @@ class Davis240C:
         bias_preset: Biases written by :meth:`send_default_config` (``BiasPreset`` or name).
         settings: Full settings (overrides ``bias_preset``).
         send_default_config: Write the settings at open (libcaer's ``sendDefaultConfig``).
-        read_size: Bytes per bulk read (a multiple of 512).
-        read_timeout_ms: Bulk read timeout; bounds how fast :meth:`stop` reacts.
+        read_size: Bytes per synchronous bulk read (a multiple of 512); used when the backend
+            has no libusb asynchronous API (the mock).
+        read_timeout_ms: Synchronous bulk read timeout; bounds how fast :meth:`stop` reacts.
+        transfers: Bulk transfers kept queued on a real device (libcaer: 8).
+        transfer_bytes: Size of each queued transfer (a multiple of 512; libcaer: 8192).
         queue_packets: Capacity of the consumer queue (decoded packets).
         queue_bytes: Capacity of the consumer queue in payload bytes (events, frame pixels,
             IMU samples); whichever limit is reached first drops the next packet.
@@ -231,8 +273,10 @@ class Davis240C:
         DeviceNotFoundError: no camera (lists what is on the bus), or none with ``serial``.
         DevicePermissionError: the user may not open it (how to install the udev rule).
         DeviceBusyError: another process holds it.
-        DeviceError: wrong firmware/logic (how to reflash), or another USB failure (then the
-            subclass its libusb code stands for, e.g. :class:`DeviceDisconnectedError`).
+        DeviceError: wrong firmware/logic (how to reflash), another chip than a DAVIS240C
+            (a DAVIS346 on an FX3 board...: its bias table, sizes and shutter differ), or
+            another USB failure (then the subclass its libusb code stands for, e.g.
+            :class:`DeviceDisconnectedError`).
     """
 
     def __init__(
@@ -252,7 +296,15 @@ class Davis240C:
         raw_queue_bytes: int = 64 << 20,
         settle_delays_s: tuple[float, float, float] = (0.010, 0.200, 0.050),
         raw_sink: BinaryIO | None = None,
+        transfers: int = 8,
+        transfer_bytes: int = 8192,
     ) -> None:
+        if transfers < 1 or transfer_bytes <= 0 or transfer_bytes % 512:
+            msg = (
+                f"transfers {transfers} must be >= 1 and transfer_bytes {transfer_bytes} a "
+                "positive multiple of 512 bytes (libcaer: 8 x 8192)"
+            )
+            raise ValidationError(msg)
         if read_size <= 0 or read_size % 512:
             msg = f"read_size {read_size} must be a positive multiple of 512 bytes"
             raise ValidationError(msg)
@@ -270,6 +322,8 @@ class Davis240C:
         self._raw_queue_bytes = raw_queue_bytes
         self._delays = settle_delays_s
         self._raw_sink = raw_sink
+        self._transfers = transfers
+        self._transfer_bytes = transfer_bytes
         self._dev: Any = None
         self._claimed = False
         self._lock = threading.Lock()  # serialises control transfers
@@ -438,7 +492,36 @@ class Davis240C:
         raise DeviceError(msg)
 
     def config_set(self, module: int, param: int, value: int) -> None:
-        """Write one 32-bit register (0xBF OUT, value big-endian)."""
+        """Set one 32-bit register the way libcaer's ``davisConfigSet`` does.
+
+        Two registers are not plain writes: MUX TIMESTAMP_RESET = 1 is the pulse of
+        :meth:`timestamp_reset` (0 sends nothing: the register always reads 0), and APS
+        GLOBAL_SHUTTER / CHIP GLOBAL_SHUTTER are kept equal (CHIP 142, then APS 7). Every
+        other register is one 0xBF OUT write (value big-endian).
+
+        Raises:
+            DeviceError: GLOBAL_SHUTTER on a chip without one, or a USB failure.
+        """
+        m, p, v = int(module), int(param), int(value)
+        if (m, p) == (Module.MUX, MuxParam.TIMESTAMP_RESET):
+            RegisterWrite(m, p, v)  # validates the value
+            if v:
+                self.timestamp_reset()
+            return
+        if (m, p) in _GLOBAL_SHUTTER_PAIR:
+            if not self._info.aps_has_global_shutter:
+                msg = (
+                    f"DAVIS240C {self._serial} has no global shutter (APS HAS_GLOBAL_SHUTTER "
+                    "= 0); leave APS.GLOBAL_SHUTTER / CHIP.GLOBAL_SHUTTER unset"
+                )
+                raise DeviceError(msg)
+            self._write(Module.BIAS, ChipParam.GLOBAL_SHUTTER, v)
+            self._write(Module.APS, ApsParam.GLOBAL_SHUTTER, v)
+            return
+        self._write(m, p, v)
+
+    def _write(self, module: int, param: int, value: int) -> None:
+        """One 0xBF OUT register write."""
         wr = RegisterWrite(int(module), int(param), int(value))
         dev = self._require_open()
         usb = usb_module()
@@ -498,9 +581,17 @@ class Davis240C:
             )
             raise DeviceError(msg)
         chip = g(S, SysInfoParam.CHIP_IDENTIFIER)
-        if chip != _CHIP_ID_DAVIS240C:
-            _log.warning("%s reports chip id %d, not a DAVIS240C (2)", name, chip)
         D, A = Module.DVS, Module.APS
+        if chip != _CHIP_ID_DAVIS240C:
+            chip_name = _CHIP_NAMES.get(chip, "an unknown chip")
+            msg = (
+                f"DAVIS camera {self._serial} (USB PID {int(dev.idProduct):#06x}) reports chip "
+                f"id {chip} ({chip_name}); this driver supports only the DAVIS240C (chip id 2, "
+                "240x180, DAVIS240 biases, global shutter) on an FX2 (PID 0x841b) or FX3 "
+                "(0x841a) board. Other chips need their own bias table, sizes and shutter "
+                "settings: use iniVation's DV / libcaer for this camera"
+            )
+            raise DeviceError(msg)
         dvs_orient = g(D, DvsParam.ORIENTATION_INFO)
         aps_orient = g(A, ApsParam.ORIENTATION_INFO)
         dvs_x, dvs_y = g(D, DvsParam.SIZE_COLUMNS), g(D, DvsParam.SIZE_ROWS)
@@ -509,6 +600,13 @@ class Davis240C:
             dvs_x, dvs_y = dvs_y, dvs_x
         if aps_orient & 4:
             aps_x, aps_y = aps_y, aps_x
+        if (dvs_x, dvs_y) != _DVS_SIZE or (aps_x, aps_y) != _DVS_SIZE:
+            msg = (
+                f"{name} reports DVS {dvs_x}x{dvs_y} and APS {aps_x}x{aps_y} pixels, not the "
+                "DAVIS240C's 240x180; this driver decodes only 240x180. Check the camera "
+                "with `mocaprig davis info` and use iniVation's DV / libcaer for other chips"
+            )
+            raise DeviceError(msg)
         return DavisInfo(
             serial=self._serial,
             bus=int(dev.bus or 0),
@@ -580,11 +678,18 @@ class Davis240C:
     # -- configuration --------------------------------------------------------------------------
 
     def send_default_config(self, settings: DavisSettings | None = None) -> None:
-        """Write biases, chip, MUX, DVS, APS, IMU, EXTINPUT and USB defaults (note §5.2)."""
+        """Write biases, chip, MUX, DVS, APS, IMU, EXTINPUT and USB defaults (note §5.2).
+
+        The DVS filters the logic has (HAS_* registers) are reset to libcaer's defaults, so a
+        filter set-up left by another program does not persist.
+        """
         if settings is not None:
             self._settings = settings
-        for wr in default_config_writes(self._settings, clocks=self._info.clocks):
-            self.config_set(wr.module, wr.param, wr.value)
+        writes = default_config_writes(
+            self._settings, clocks=self._info.clocks, dvs_filters=self._info.dvs_filters
+        )
+        for wr in writes:
+            self._write(wr.module, wr.param, wr.value)
 
     def timestamp_reset(self) -> None:
         """Pulse MUX TIMESTAMP_RESET atomically (0xC2 [1, 0]); slaves follow the master."""
@@ -626,8 +731,7 @@ class Davis240C:
         except usb.core.USBError as err:
             what = "clearing the halt on EP 0x82"
             raise self._usb_error(what, err) from err
-        flip = self._info.imu_orientation
-        decoder = DavisDecoder(imu_flip=(bool(flip & 4), bool(flip & 2), bool(flip & 1)))
+        decoder = DavisDecoder(orientation=self._info.orientation)
         self._stream = DavisStream(
             dev,
             decoder,
@@ -639,6 +743,8 @@ class Davis240C:
             discard_until_reset=timestamp_reset,
             name=self._serial,
             raw_sink=self._raw_sink,
+            transfers=self._transfers,
+            transfer_bytes=self._transfer_bytes,
         )
         self._stream.start()
         try:

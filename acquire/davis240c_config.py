@@ -32,6 +32,7 @@ __all__ = [
     "CoarseFineBias",
     "DavisSettings",
     "DeviceClocks",
+    "DvsFilters",
     "DvsParam",
     "ExtInputParam",
     "ExtInputSettings",
@@ -47,6 +48,7 @@ __all__ = [
     "UsbParam",
     "bias_set",
     "default_config_writes",
+    "dvs_filter_reset_writes",
     "parse_setting",
     "to_device_units",
 ]
@@ -85,6 +87,22 @@ class DvsParam(IntEnum):
     WAIT_ON_TRANSFER_STALL = 4
     EXTERNAL_AER_CONTROL = 5
     HAS_PIXEL_FILTER = 10
+    FILTER_PIXEL_0_ROW = 11
+    FILTER_PIXEL_0_COLUMN = 12
+    FILTER_PIXEL_1_ROW = 13
+    FILTER_PIXEL_1_COLUMN = 14
+    FILTER_PIXEL_2_ROW = 15
+    FILTER_PIXEL_2_COLUMN = 16
+    FILTER_PIXEL_3_ROW = 17
+    FILTER_PIXEL_3_COLUMN = 18
+    FILTER_PIXEL_4_ROW = 19
+    FILTER_PIXEL_4_COLUMN = 20
+    FILTER_PIXEL_5_ROW = 21
+    FILTER_PIXEL_5_COLUMN = 22
+    FILTER_PIXEL_6_ROW = 23
+    FILTER_PIXEL_6_COLUMN = 24
+    FILTER_PIXEL_7_ROW = 25
+    FILTER_PIXEL_7_COLUMN = 26
     HAS_BACKGROUND_ACTIVITY_FILTER = 30
     FILTER_BACKGROUND_ACTIVITY = 31
     FILTER_BACKGROUND_ACTIVITY_TIME = 32
@@ -589,13 +607,73 @@ class DavisSettings:
         return replace(cls(), biases=bias_set(preset), **changes)  # type: ignore[arg-type]
 
 
+@dataclass(frozen=True, slots=True)
+class DvsFilters:
+    """Which DVS filters the logic has (the DVS HAS_* registers, read at open)."""
+
+    pixel: bool = False
+    background_activity: bool = False
+    roi: bool = False
+    skip: bool = False
+    polarity: bool = False
+
+
+def dvs_filter_reset_writes(
+    filters: DvsFilters, *, columns: int = 240, rows: int = 180
+) -> list[RegisterWrite]:
+    """libcaer 3.3's default (= reset) values of the DVS filters the logic has.
+
+    ``davisCommonSendDefaultFPGAConfig``: the 8 suppressed pixels moved out of range (row =
+    ``rows``, column = ``columns``), background-activity filter on with 2 ms (8 × 250 µs),
+    refractory filter off with 250 µs, ROI = the whole array, skip filter off (every 5th),
+    polarity filters off. Filters the logic lacks get no write (libcaer sends none).
+    """
+    D = Module.DVS
+    out: list[RegisterWrite] = []
+    if filters.pixel:
+        for k in range(8):
+            out.append(RegisterWrite(D, DvsParam.FILTER_PIXEL_0_ROW + 2 * k, rows))
+            out.append(RegisterWrite(D, DvsParam.FILTER_PIXEL_0_COLUMN + 2 * k, columns))
+    if filters.background_activity:
+        out += [
+            RegisterWrite(D, DvsParam.FILTER_BACKGROUND_ACTIVITY, 1),
+            RegisterWrite(D, DvsParam.FILTER_BACKGROUND_ACTIVITY_TIME, 8),
+            RegisterWrite(D, DvsParam.FILTER_REFRACTORY_PERIOD, 0),
+            RegisterWrite(D, DvsParam.FILTER_REFRACTORY_PERIOD_TIME, 1),
+        ]
+    if filters.roi:
+        out += [
+            RegisterWrite(D, DvsParam.FILTER_ROI_START_COLUMN, 0),
+            RegisterWrite(D, DvsParam.FILTER_ROI_START_ROW, 0),
+            RegisterWrite(D, DvsParam.FILTER_ROI_END_COLUMN, columns - 1),
+            RegisterWrite(D, DvsParam.FILTER_ROI_END_ROW, rows - 1),
+        ]
+    if filters.skip:
+        out += [
+            RegisterWrite(D, DvsParam.FILTER_SKIP_EVENTS, 0),
+            RegisterWrite(D, DvsParam.FILTER_SKIP_EVENTS_EVERY, 5),
+        ]
+    if filters.polarity:
+        out += [
+            RegisterWrite(D, DvsParam.FILTER_POLARITY_FLATTEN, 0),
+            RegisterWrite(D, DvsParam.FILTER_POLARITY_SUPPRESS, 0),
+            RegisterWrite(D, DvsParam.FILTER_POLARITY_SUPPRESS_TYPE, 0),
+        ]
+    return out
+
+
 def default_config_writes(
-    settings: DavisSettings | None = None, *, clocks: DeviceClocks | None = None
+    settings: DavisSettings | None = None,
+    *,
+    clocks: DeviceClocks | None = None,
+    dvs_filters: DvsFilters | None = None,
 ) -> list[RegisterWrite]:
     """The register writes of libcaer's ``sendDefaultConfig`` for a DAVIS240C (note §5.2).
 
-    Filter (DVS) and generator (EXTINPUT) registers are not written: libcaer sends them only
-    when the matching HAS_* flag is set, and the FX2 DAVIS240C has none (read them to check).
+    The DVS filter registers are reset (:func:`dvs_filter_reset_writes`) for the filters
+    ``dvs_filters`` says the logic has, right after the other DVS registers, as libcaer does;
+    none without it. Generator (EXTINPUT) registers are not written (the FX2 DAVIS240C has
+    no generator).
     """
     s = settings if settings is not None else DavisSettings()
     c = clocks if clocks is not None else DeviceClocks()
@@ -613,6 +691,8 @@ def default_config_writes(
         RegisterWrite(M.DVS, DvsParam.WAIT_ON_TRANSFER_STALL, 0),
         RegisterWrite(M.DVS, DvsParam.EXTERNAL_AER_CONTROL, 0),
     ]
+    if dvs_filters is not None:
+        out += dvs_filter_reset_writes(dvs_filters)
     a = s.aps
     gs = int(a.global_shutter)
 

@@ -40,8 +40,11 @@ __all__ = [
     "DavisPacket",
     "DecodeStats",
     "DeviceSpecial",
+    "DroppedWords",
+    "SensorOrientation",
     "SpecialType",
     "decode_words",
+    "scan_dropped",
 ]
 
 _log = logging.getLogger(__name__)
@@ -144,6 +147,9 @@ class DecodeStats:
         unknown_words: Reserved/unknown SPECIAL, MISC8 or MISC10 words.
         odd_trailing_bytes: Times a packet ended mid-word (the byte is kept for the next one).
         gaps: Times the caller said data were lost (:meth:`DavisDecoder.decode_gap`).
+        gap_bytes: Bytes in those gaps (when the caller said how many).
+        gap_wraps: Timestamp wraps found in the lost data and applied (time stays exact).
+        gap_timestamp_resets: Timestamp resets found in the lost data and applied.
     """
 
     bytes_in: int = 0
@@ -166,6 +172,9 @@ class DecodeStats:
     unknown_words: int = 0
     odd_trailing_bytes: int = 0
     gaps: int = 0
+    gap_bytes: int = 0
+    gap_wraps: int = 0
+    gap_timestamp_resets: int = 0
 
     @property
     def skipped_words(self) -> int:
@@ -254,6 +263,96 @@ class DavisPacket:
         return not (self.events.size or self.frames or self.imu.size or self.specials.size)
 
 
+@dataclass(frozen=True, slots=True)
+class SensorOrientation:
+    """How the logic's addresses map to image coordinates (the ORIENTATION_INFO registers).
+
+    Applied as libcaer 3.3 does (``davisCommonInit`` / ``apsUpdateFrame``; note §3.2-§3.4):
+
+    Attributes:
+        dvs_invert_xy: DVS ORIENTATION_INFO bit 2: X words carry the row and Y words the
+            column; events are swapped back. Bits 1..0 of that register give the chip's
+            origin, which the logic already turns into an upper-left one, so (like libcaer)
+            they are not applied.
+        aps_invert_xy: APS ORIENTATION_INFO bit 2: the readout's "columns" are image rows.
+        aps_flip_x: APS ORIENTATION_INFO bit 1: readout columns run right to left.
+        aps_flip_y: APS ORIENTATION_INFO bit 0: samples within a column run bottom to top.
+        imu_flip: IMU ORIENTATION_INFO bits 2, 1, 0: negate accel and gyro x, y, z.
+    """
+
+    dvs_invert_xy: bool = False
+    aps_invert_xy: bool = False
+    aps_flip_x: bool = False
+    aps_flip_y: bool = False
+    imu_flip: tuple[bool, bool, bool] = (False, False, False)
+
+    @classmethod
+    def from_registers(cls, dvs: int, aps: int, imu: int) -> SensorOrientation:
+        """From DVS, APS and IMU ORIENTATION_INFO register values."""
+        return cls(
+            dvs_invert_xy=bool(dvs & 4),
+            aps_invert_xy=bool(aps & 4),
+            aps_flip_x=bool(aps & 2),
+            aps_flip_y=bool(aps & 1),
+            imu_flip=(bool(imu & 4), bool(imu & 2), bool(imu & 1)),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class DroppedWords:
+    """What a lost stretch of the word stream did to the parser's time state.
+
+    Built by :func:`scan_dropped` from the bytes that were dropped (a cheap vectorised scan),
+    and applied by :meth:`DavisDecoder.decode_gap` so that time stays exact across the gap.
+
+    Attributes:
+        n_bytes: Bytes lost.
+        timestamp_reset: The lost data held a timestamp-reset word.
+        wraps: Wrap count (sum of the WRAP words' data) after the last reset in the lost data.
+        last_timestamp: The last 15-bit timestamp after the last wrap/reset in the lost data,
+            0 when a wrap or reset came after it, None when the lost data changed neither.
+        last_row: The last valid DVS row address in the lost data, or None.
+    """
+
+    n_bytes: int = 0
+    timestamp_reset: bool = False
+    wraps: int = 0
+    last_timestamp: int | None = None
+    last_row: int | None = None
+
+
+def scan_dropped(words: npt.NDArray[np.uint16], *, dvs_rows: int = 180) -> DroppedWords:
+    """Scan lost 16-bit words (aligned) for resets, wraps, the last timestamp and row.
+
+    ``dvs_rows`` is the range of the Y words' addresses (the chip's native rows).
+    """
+    w = np.asarray(words, dtype=np.uint16).ravel()
+    n_bytes = 2 * int(w.size)
+    resets = np.flatnonzero(w == DeviceSpecial.TIMESTAMP_RESET)
+    reset = resets.size > 0
+    if reset:
+        w = w[int(resets[-1]) + 1 :]
+    hi = w >> 12
+    wrap_at = np.flatnonzero(hi == 7)
+    ts_at = np.flatnonzero(w >= 0x8000)
+    wraps = int((w[wrap_at] & 0x0FFF).astype(np.int64).sum())
+    last_ts: int | None = None
+    last_wrap = int(wrap_at[-1]) if wrap_at.size else -1
+    if ts_at.size and int(ts_at[-1]) > last_wrap:
+        last_ts = int(w[ts_at[-1]] & 0x7FFF)
+    elif wrap_at.size or reset:
+        last_ts = 0
+    y_at = np.flatnonzero((hi == 1) & ((w & 0x0FFF) < dvs_rows))
+    last_row = int(w[y_at[-1]] & 0x0FFF) if y_at.size else None
+    return DroppedWords(
+        n_bytes=n_bytes,
+        timestamp_reset=reset,
+        wraps=wraps,
+        last_timestamp=last_ts,
+        last_row=last_row,
+    )
+
+
 class _Frame:
     """A frame being assembled (mutable parser state)."""
 
@@ -263,6 +362,7 @@ class _Frame:
         "exposure_cycles",
         "exposure_slices",
         "global_shutter",
+        "invert_xy",
         "pixels",
         "read",
         "reset",
@@ -273,7 +373,8 @@ class _Frame:
         "t_start_frame",
     )
 
-    def __init__(self, t_us: int, *, global_shutter: bool) -> None:
+    def __init__(self, t_us: int, *, global_shutter: bool, invert_xy: bool = False) -> None:
+        self.invert_xy = invert_xy
         self.t_start_frame = t_us
         self.t_start_exposure = t_us
         self.t_end_exposure = t_us
@@ -296,24 +397,48 @@ class _Frame:
                 return sx, sy, ex - sx + 1, ey - sy + 1
         return 0, 0, DAVIS240C_APS_COLUMNS, DAVIS240C_APS_ROWS
 
+    def readout(self) -> tuple[int, int]:
+        """(columns, samples per column) of the readout: the ROI, swapped if invert_xy."""
+        _, _, cols, rows = self.shape()
+        return (rows, cols) if self.invert_xy else (cols, rows)
+
     def buffers(self) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
         if self.reset is None or self.pixels is None:
-            _, _, cols, rows = self.shape()
-            self.reset = np.zeros((cols, rows), np.int32)
-            self.pixels = np.zeros((cols, rows), np.int32)
+            shape = self.readout()
+            self.reset = np.zeros(shape, np.int32)
+            self.pixels = np.zeros(shape, np.int32)
         return self.reset, self.pixels
 
 
 class DavisDecoder:
     """Stateful decoder of a DAVIS240C (logic 18) word stream, fed packet by packet.
 
-    ``imu_flip`` negates the accel and gyro axes (x, y, z) as IMU ORIENTATION_INFO says.
+    ``orientation`` applies the ORIENTATION_INFO registers (:class:`SensorOrientation`);
+    ``imu_flip`` (kept for callers that only know the IMU register) overrides its IMU part.
     Parsing of APS and IMU words starts at the first frame / IMU start (note §5.3) and is
     suspended again after a timestamp reset or a big wrap.
     """
 
-    def __init__(self, *, imu_flip: tuple[bool, bool, bool] = (False, False, False)) -> None:
-        self._imu_sign = np.where(np.asarray(imu_flip, dtype=bool), -1.0, 1.0)
+    def __init__(
+        self,
+        *,
+        imu_flip: tuple[bool, bool, bool] | None = None,
+        orientation: SensorOrientation | None = None,
+    ) -> None:
+        o = orientation if orientation is not None else SensorOrientation()
+        if imu_flip is not None:
+            o = SensorOrientation(
+                dvs_invert_xy=o.dvs_invert_xy,
+                aps_invert_xy=o.aps_invert_xy,
+                aps_flip_x=o.aps_flip_x,
+                aps_flip_y=o.aps_flip_y,
+                imu_flip=imu_flip,
+            )
+        self.orientation = o
+        # Address ranges of the X and Y words (the chip's native axes).
+        self._x_range = DAVIS240C_DVS_ROWS if o.dvs_invert_xy else DAVIS240C_DVS_COLUMNS
+        self._y_range = DAVIS240C_DVS_COLUMNS if o.dvs_invert_xy else DAVIS240C_DVS_ROWS
+        self._imu_sign = np.where(np.asarray(o.imu_flip, dtype=bool), -1.0, 1.0)
         self._counts: dict[str, int] = dict.fromkeys((f.name for f in fields(DecodeStats)), 0)
         self._pending = b""
         # Timestamp state: epoch = all wraps since the last reset (µs), ts15 = last timestamp
@@ -370,13 +495,42 @@ class DavisDecoder:
             words = np.frombuffer(raw, dtype="<u2")
         return self._decode_words(words)
 
-    def decode_gap(self) -> None:
+    def decode_gap(self, lost: DroppedWords | None = None, *, pending: bytes = b"") -> DavisPacket:
         """Say that stream data were lost: the partial frame / IMU sample is dropped and APS/IMU
-        parsing waits for the next start word. Times stay continuous only if no wrap was lost.
+        parsing waits for the next start word.
+
+        With ``lost`` (:func:`scan_dropped` of the lost words) the timestamp resets, wraps, the
+        last timestamp and row address of the lost data are applied, so later times stay exact;
+        without it, time stays right only if no wrap was lost. ``pending`` is the odd byte that
+        ended the lost data (the first half of the word the next chunk completes). Returns the
+        special events the gap produced (a timestamp reset, a big wrap).
         """
         self._counts["gaps"] += 1
-        self._pending = b""
+        self._pending = bytes(pending[-1:])
+        self._specials, self._frames, self._imu_out = [], [], []
         self._suspend_composites()
+        if lost is not None:
+            c = self._counts
+            c["gap_bytes"] += lost.n_bytes
+            if lost.timestamp_reset:
+                c["gap_timestamp_resets"] += 1
+                self._timestamp_reset()
+                self._row = -1
+            c["gap_wraps"] += lost.wraps
+            if lost.wraps:
+                new_epoch = self._epoch + lost.wraps * _WRAP_US
+                for k in range((self._epoch >> 31) + 1, (new_epoch >> 31) + 1):
+                    self._big_wrap(k << 31)
+                self._epoch = new_epoch
+            if lost.last_timestamp is not None:
+                self._ts15 = lost.last_timestamp
+            if lost.last_row is not None:
+                self._row = lost.last_row
+            self._last_time = self._epoch + self._ts15
+        specials = np.array(self._specials, dtype=SPECIAL_DTYPE)
+        self._specials = []
+        self._counts["specials"] += specials.size
+        return DavisPacket(events=empty_events(), specials=specials)
 
     # -- the word stream -----------------------------------------------------------------------
 
@@ -473,7 +627,7 @@ class DavisDecoder:
             times[0] = t0
             np.add(epoch, ts15, out=times[1:])
             yv = (sw & 0x0FFF).astype(np.int16)
-            bad_y = is_y & (yv >= DAVIS240C_DVS_ROWS)
+            bad_y = is_y & (yv >= self._y_range)
             if bad_y.any():
                 self._counts["y_out_of_range"] += int(np.count_nonzero(bad_y))
                 is_y = is_y & ~bad_y
@@ -510,12 +664,14 @@ class DavisDecoder:
             xx = xw & 0x0FFF
             ev["x"] = xx
             ev["p"] = (xw >> 12) & 1
-            if yy.size and (yy.min() < 0 or xx.max() >= DAVIS240C_DVS_COLUMNS):
+            if yy.size and (yy.min() < 0 or xx.max() >= self._x_range):
                 no_row = yy < 0
-                bad_x = xx >= DAVIS240C_DVS_COLUMNS
+                bad_x = xx >= self._x_range
                 self._counts["x_without_row"] += int(np.count_nonzero(no_row))
                 self._counts["x_out_of_range"] += int(np.count_nonzero(bad_x & ~no_row))
                 ev = ev[~(no_row | bad_x)]
+            if self.orientation.dvs_invert_xy:
+                ev["x"], ev["y"] = ev["y"].copy(), ev["x"].copy()
         else:
             ev = empty_events()
         if rare_idx.size or big:
@@ -684,7 +840,7 @@ class DavisDecoder:
                 self._counts["frames_dropped"] += 1
             self._aps_parse = True
             gs = data == DeviceSpecial.APS_FRAME_START_GS
-            self._frame = _Frame(t, global_shutter=gs)
+            self._frame = _Frame(t, global_shutter=gs, invert_xy=self.orientation.aps_invert_xy)
             self._specials.append((t, SpecialType.APS_FRAME_START, 0))
         elif DeviceSpecial.APS_FRAME_END <= data <= DeviceSpecial.APS_EXPOSURE_END:
             self._aps_special(data, t)
@@ -717,7 +873,7 @@ class DavisDecoder:
             if f.read is None:
                 self._counts["aps_words_skipped"] += 1
                 return
-            if f.count_y[f.read] != f.shape()[3]:
+            if f.count_y[f.read] != f.readout()[1]:
                 self._counts["aps_row_count_mismatches"] += 1
             f.count_x[f.read] += 1
             f.read = None
@@ -729,7 +885,8 @@ class DavisDecoder:
             self._specials.append((t, SpecialType.APS_EXPOSURE_END, 0))
 
     def _end_frame(self, f: _Frame, t: int) -> None:
-        sx, sy, cols, _ = f.shape()
+        sx, sy, _, _ = f.shape()
+        cols = f.readout()[0]
         self._specials.append((t, SpecialType.APS_FRAME_END, 0))
         if f.count_x[_READ_RESET] != cols or f.count_x[_READ_SIGNAL] != cols:
             self._counts["frames_dropped"] += 1
@@ -740,7 +897,15 @@ class DavisDecoder:
                 cols,
             )
             return
-        _, pixels = f.buffers()
+        _, readout = f.buffers()
+        # libcaer apsUpdateFrame: x = flipX ? n-1-column : column, y likewise, then swapped
+        # when invertXY; the buffer is (readout column, sample), the image (row, column).
+        o = self.orientation
+        if o.aps_flip_x:
+            readout = readout[::-1, :]
+        if o.aps_flip_y:
+            readout = readout[:, ::-1]
+        pixels = readout if o.aps_invert_xy else readout.T
         self._frames.append(
             ApsFrame(
                 t_start_frame_us=f.t_start_frame,
@@ -750,7 +915,7 @@ class DavisDecoder:
                 exposure_cycles=f.exposure_cycles,
                 position_x=sx,
                 position_y=sy,
-                pixels=np.ascontiguousarray(pixels.T, dtype=np.uint16),
+                pixels=np.ascontiguousarray(pixels, dtype=np.uint16),
                 global_shutter=f.global_shutter,
             )
         )
@@ -762,7 +927,7 @@ class DavisDecoder:
         if f is None or not self._aps_parse or f.read is None:
             self._counts["aps_words_skipped"] += int(run.size)
             return
-        _, _, cols, rows = f.shape()
+        cols, rows = f.readout()
         read = f.read
         c = f.count_x[read]
         r = f.count_y[read]

@@ -13,9 +13,7 @@ with this module (:func:`candidate_devices`, :func:`read_serial`, :func:`describ
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from importlib.resources import files
 from typing import Any
 
@@ -28,6 +26,7 @@ from mocaprig.acquire.davis240c_libusb import (
     is_permission,
     usb_module,
 )
+from mocaprig.acquire.mocks import load_mock_factory
 from mocaprig.errors import DeviceError
 
 __all__ = [
@@ -60,17 +59,7 @@ def load_mock_backend(**kwargs: Any) -> Any:
     Raises:
         DeviceError: no mock is registered (the package is not installed with its mocks).
     """
-    try:
-        ep = entry_points(group="mocaprig.mocks")["davis240c"]
-    except KeyError as err:
-        msg = "no 'davis240c' mock in the mocaprig.mocks entry points; run `pip install -e .`"
-        raise DeviceError(msg) from err
-    try:
-        factory: Callable[..., Any] = ep.load()
-    except ImportError as err:
-        msg = f"the DAVIS240C mock ({ep.value}) cannot be imported: {err}"
-        raise DeviceError(msg) from err
-    return factory(**kwargs)
+    return load_mock_factory("davis240c")(**kwargs)
 
 
 @dataclass(frozen=True, slots=True)

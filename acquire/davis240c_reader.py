@@ -1,13 +1,25 @@
 """The DAVIS240C's streaming threads: a USB reader, a decoder and the queues between them.
 
 :class:`DavisStream` is one streaming session of an opened camera
-(:class:`mocaprig.acquire.davis240c.Davis240C` starts and stops it). A *reader* thread only keeps
-bulk EP 0x82 drained (one synchronous ``read_size``-byte read at a time, short timeout) and
-hands raw chunks over in a bounded queue; a *decoder* thread turns them into
-:class:`~mocaprig.acquire.davis240c_decode.DavisPacket` objects in a second bounded queue (by
-count and by payload bytes). A slow consumer never blocks either thread: raw chunks that do not
-fit become gaps, packets that do not fit are dropped and counted by kind (:class:`StreamStats`);
-their special events (timestamp resets, triggers) are kept and delivered with the next packet.
+(:class:`mocaprig.acquire.davis240c.Davis240C` starts and stops it). The *reader* keeps bulk
+EP 0x82 drained and hands raw chunks over, in stream order, in a bounded queue; a *decoder*
+thread turns them into :class:`~mocaprig.acquire.davis240c_decode.DavisPacket` objects in a
+second bounded queue (by count and by payload bytes).
+
+On a real device (pyusb's libusb1 backend) the reader is
+:class:`~mocaprig.acquire.davis240c_libusb.AsyncBulkReader`: ``transfers`` bulk transfers of
+``transfer_bytes`` stay queued (libcaer: 8 × 8 KiB), so the device's small FIFO is drained while
+the host handles earlier data. Synchronous reads from several threads could not keep the order
+of the data (a thread can take its sequence number and be preempted before its read is
+submitted), so a backend without libusb's asynchronous API (the mock's ``IBackend``) is read by
+one thread with one synchronous ``read_size``-byte read at a time (``docs/davis240c.md``).
+
+A slow consumer never blocks the reader: raw chunks that do not fit in the hand-off queue are
+dropped but first scanned (vectorised, :func:`~mocaprig.acquire.davis240c_decode.scan_dropped`)
+for timestamp wraps, resets, the last timestamp and row, which the decoder applies, so the
+times after a dropped chunk stay exact; packets that do not fit are dropped and counted by kind
+(:class:`StreamStats`); their special events (timestamp resets, triggers) are kept and delivered
+with the next packet.
 
 A USB error other than a timeout (unplugged cable) stops the stream cleanly: everything already
 received is decoded and delivered, then :meth:`DavisStream.get` raises
@@ -26,9 +38,17 @@ from typing import Any, BinaryIO, Final
 
 import numpy as np
 
-from mocaprig.acquire.davis240c_decode import DavisDecoder, DavisPacket, DecodeStats
+from mocaprig.acquire.davis240c_decode import (
+    DavisDecoder,
+    DavisPacket,
+    DecodeStats,
+    DroppedWords,
+    scan_dropped,
+)
 from mocaprig.acquire.davis240c_libusb import (
     DATA_ENDPOINT,
+    AsyncBulkReader,
+    async_handle,
     device_error,
     is_no_device,
     is_timeout,
@@ -50,10 +70,13 @@ class StreamStats:
 
     Attributes:
         running: The reader is running.
+        transfers_queued: Bulk transfers kept queued (1 = synchronous reads).
         reads: Completed bulk reads.
         bytes_read: Bytes received from EP 0x82.
         read_timeouts: Bulk reads that returned nothing within the read timeout.
-        raw_bytes_dropped: Raw bytes dropped because the decoder fell behind.
+        raw_bytes_dropped: Raw bytes dropped because the decoder fell behind (scanned for
+            wraps and resets first, so later times stay exact).
+        raw_chunks_dropped: Raw chunks (bulk reads) so dropped.
         bytes_discarded_before_reset: Bytes thrown away before our own timestamp reset.
         packets_delivered: Packets handed to the consumer queue.
         packets_dropped: Packets dropped because the consumer queue was full.
@@ -66,10 +89,12 @@ class StreamStats:
     """
 
     running: bool = False
+    transfers_queued: int = 0
     reads: int = 0
     bytes_read: int = 0
     read_timeouts: int = 0
     raw_bytes_dropped: int = 0
+    raw_chunks_dropped: int = 0
     bytes_discarded_before_reset: int = 0
     packets_delivered: int = 0
     packets_dropped: int = 0
@@ -110,6 +135,8 @@ class DavisStream:
         discard_until_reset: bool,
         name: str,
         raw_sink: BinaryIO | None,
+        transfers: int = 8,
+        transfer_bytes: int = 8192,
     ) -> None:
         self._dev = dev
         self._raw_sink = raw_sink
@@ -124,8 +151,9 @@ class DavisStream:
         self._discard_carry = b""
         self._name = name
         self._stop = threading.Event()
-        self._raw: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._raw: collections.deque[tuple[int, bytes | _Lost]] = collections.deque()
         self._raw_bytes = 0
+        self._stream_carry = b""  # the odd byte that ends the stream so far (word alignment)
         self._raw_cond = threading.Condition()
         self._reader_done = False
         self._out: collections.deque[DavisPacket] = collections.deque()
@@ -139,6 +167,7 @@ class DavisStream:
                 "bytes_read",
                 "read_timeouts",
                 "raw_bytes_dropped",
+                "raw_chunks_dropped",
                 "bytes_discarded_before_reset",
                 "packets_delivered",
                 "packets_dropped",
@@ -149,6 +178,20 @@ class DavisStream:
             ),
             0,
         )
+        self._async: AsyncBulkReader | None = None
+        handle = async_handle(dev)
+        if handle is not None:
+            self._async = AsyncBulkReader(
+                handle,
+                DATA_ENDPOINT,
+                transfers=transfers,
+                transfer_bytes=transfer_bytes,
+                on_data=self._on_chunk,
+                on_error=self._on_async_end,
+                name=name,
+            )
+        self._transfers_queued = transfers if self._async is not None else 1
+        self._async_done = threading.Event()
         self._reader = threading.Thread(target=self._read_loop, name=f"davis-{name}-reader")
         self._decoder_thread = threading.Thread(
             target=self._decode_loop, name=f"davis-{name}-decoder"
@@ -157,23 +200,58 @@ class DavisStream:
         self._decoder_thread.daemon = True
 
     def start(self) -> None:
-        """Start the reader and decoder threads."""
+        """Start the reader (transfers) and the decoder thread.
+
+        Raises:
+            DeviceError: the bulk transfers could not be submitted (libusb code kept).
+        """
+        if self._async is not None:
+            usb = usb_module()
+            try:
+                self._async.start()
+            except usb.core.USBError as err:
+                msg = f"DAVIS240C {self._name}: cannot queue bulk transfers on EP 0x82: {err}"
+                raise device_error(msg, err) from err
+            self._reader = threading.Thread(
+                target=self._async_watch, name=f"davis-{self._name}-reader", daemon=True
+            )
         self._reader.start()
         self._decoder_thread.start()
 
     def reader_alive(self) -> bool:
-        """The reader thread is running."""
+        """The reader is running."""
         return self._reader.is_alive()
 
     def request_stop(self) -> None:
-        """Ask the reader to stop after its current bulk read (does not wait)."""
+        """Ask the reader to stop (cancel the transfers / end after the current read)."""
         self._stop.set()
+        if self._async is not None:
+            self._async.request_stop()
 
     def join(self) -> None:
         """Stop the reader and wait for both threads (the decoder drains what was read)."""
-        self._stop.set()
+        self.request_stop()
         self._reader.join()
         self._decoder_thread.join()
+
+    # -- asynchronous transfers -----------------------------------------------------------------
+
+    def _async_watch(self) -> None:
+        """Stands for the reader thread while the libusb event thread runs the transfers."""
+        reader = self._async
+        try:
+            if reader is not None:
+                while reader.is_alive():
+                    reader.join(0.1)
+        finally:
+            with self._raw_cond:
+                self._reader_done = True
+                self._raw_cond.notify()
+
+    def _on_async_end(self, err: BaseException) -> None:
+        if self.error is None:
+            self.error = err
+            _log.error("DAVIS240C %s: bulk transfers stopped: %s", self._name, err)
 
     def finished(self) -> bool:
         """Both threads are done and every decoded packet was taken."""
@@ -200,20 +278,7 @@ class DavisStream:
                     self.error = err
                     _log.error("DAVIS240C %s: bulk read failed, stopping: %s", self._name, err)
                     break
-                t_ns = time.time_ns()
-                chunk = bytes(data)
-                self._c["reads"] += 1
-                self._c["bytes_read"] += len(chunk)
-                if not chunk:
-                    continue
-                with self._raw_cond:
-                    if self._raw_bytes + len(chunk) > self._raw_limit:
-                        self._c["raw_bytes_dropped"] += len(chunk)
-                        self._raw.append((t_ns, b""))  # a gap marker for the decoder
-                    else:
-                        self._raw.append((t_ns, chunk))
-                        self._raw_bytes += len(chunk)
-                    self._raw_cond.notify()
+                self._on_chunk(bytes(data), time.time_ns())
         except Exception as err:  # pragma: no cover - a bug or a backend misbehaving
             self.error = err
             _log.exception("DAVIS240C %s: reader thread crashed", self._name)
@@ -221,6 +286,35 @@ class DavisStream:
             with self._raw_cond:
                 self._reader_done = True
                 self._raw_cond.notify()
+
+    def _on_chunk(self, chunk: bytes, t_ns: int) -> None:
+        """One completed read, in stream order: queue it, or scan and drop it."""
+        self._c["reads"] += 1
+        self._c["bytes_read"] += len(chunk)
+        if not chunk:
+            return
+        with self._raw_cond:
+            carry = self._stream_carry
+            odd = (len(carry) + len(chunk)) % 2
+            if self._raw_bytes + len(chunk) > self._raw_limit:
+                # The decoder is behind: drop the bytes but keep what they do to time.
+                data = carry + chunk
+                even = len(data) - odd
+                words = np.frombuffer(data[:even], dtype="<u2")
+                lost = _Lost(scan_dropped(words, dvs_rows=self._y_range), data[even:])
+                self._c["raw_bytes_dropped"] += len(chunk)
+                self._c["raw_chunks_dropped"] += 1
+                self._raw.append((t_ns, lost))
+            else:
+                self._raw.append((t_ns, chunk))
+                self._raw_bytes += len(chunk)
+            self._stream_carry = chunk[-1:] if odd else b""
+            self._raw_cond.notify()
+
+    @property
+    def _y_range(self) -> int:
+        o = self._decoder.orientation
+        return 240 if o.dvs_invert_xy else 180
 
     # -- decoder thread -------------------------------------------------------------------------
 
@@ -233,9 +327,10 @@ class DavisStream:
                     if not self._raw:
                         break
                     t_ns, chunk = self._raw.popleft()
-                    self._raw_bytes -= len(chunk)
-                if not chunk:
-                    self._decoder.decode_gap()
+                    if isinstance(chunk, bytes):
+                        self._raw_bytes -= len(chunk)
+                if isinstance(chunk, _Lost):
+                    self._gap(chunk, t_ns)
                     continue
                 if self._discard:
                     chunk = self._skip_until_reset(chunk)
@@ -261,6 +356,18 @@ class DavisStream:
             with self._out_cond:
                 self._decoder_done = True
                 self._out_cond.notify_all()
+
+    def _gap(self, lost: _Lost, t_ns: int) -> None:
+        """A dropped chunk: apply its resets/wraps (or keep discarding before our reset)."""
+        if self._discard:
+            if not lost.words.timestamp_reset:
+                self._discard_carry = lost.pending
+                self._c["bytes_discarded_before_reset"] += lost.words.n_bytes
+                return
+            self._discard = False
+            self._discard_carry = b""
+        pkt = self._decoder.decode_gap(lost.words, pending=lost.pending)
+        self._deliver(DavisPacket(events=pkt.events, specials=pkt.specials, host_time_ns=t_ns))
 
     def _skip_until_reset(self, chunk: bytes) -> bytes:
         data = self._discard_carry + chunk
@@ -349,10 +456,19 @@ class DavisStream:
         c = self._c
         return StreamStats(
             running=self._reader.is_alive(),
+            transfers_queued=self._transfers_queued,
             decode=self._decoder.stats,
             error=None if self.error is None else str(self.error),
             **c,
         )
+
+
+@dataclass(frozen=True, slots=True)
+class _Lost:
+    """A dropped chunk in the hand-off queue: its scan and the odd byte that ended it."""
+
+    words: DroppedWords
+    pending: bytes
 
 
 def _payload_bytes(pkt: DavisPacket) -> int:

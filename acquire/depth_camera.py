@@ -33,6 +33,11 @@ Contract every implementation honours (the mock too):
   :class:`~mocaprig.errors.DevicePermissionError`. The backend's own words stay in
   ``backend_error`` and the cause is chained. Misuse (configure while streaming, poll before
   start) stays a plain :class:`~mocaprig.errors.DeviceError`.
+* Without per-frame metadata a camera in master or slave mode refuses to deliver frames
+  (:class:`~mocaprig.errors.DeviceError` naming the kernel fix) unless its
+  :class:`MetadataPolicy` ``allow_no_metadata`` is set (``d415_sync.configure_rig`` sets it);
+  either way a run without metadata is announced by a warning. IR and depth are then paired by
+  timestamp, never by the host-side per-stream frame numbers.
 * :class:`FrameTiming` carries the metadata untouched (device counter and µs timestamps, no
   unwrapping of the u32 device clock). When per-frame metadata is missing (no kernel patch), the
   domain is ``SYSTEM_TIME``, the hardware timestamps are ``None`` and the counter is host-made.
@@ -68,6 +73,7 @@ __all__ = [
     "FrameSet",
     "FrameTiming",
     "Intrinsics",
+    "MetadataPolicy",
     "SensorOptions",
     "StreamConfig",
     "StreamKind",
@@ -458,3 +464,14 @@ class DepthCamera(Protocol):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None: ...
+
+
+@runtime_checkable
+class MetadataPolicy(Protocol):
+    """A camera that can be told to deliver synced frames without per-frame metadata.
+
+    ``allow_no_metadata`` is ``False`` by default: a master/slave camera whose frames carry no
+    hardware timestamps refuses them (sync could not be verified, frames cannot be counted).
+    """
+
+    allow_no_metadata: bool

@@ -8,14 +8,19 @@ realsense-d415.md §3. The adapter works at the *sensor* level, not through ``rs
   is read-only while open, §2.3); manual exposure/gain, laser power and emitter are set too;
 * frames go into an ``rs.frame_queue(capacity, keep_frames=True)``: ``keep()`` detaches each
   frame from the SDK's 16-frame pool, so a slow consumer never starves the pool (§3.2), and the
-  queue holds ``queue_seconds`` of both streams; IR and depth are paired here by frame counter
-  (nothing is re-emitted, unlike the pipeline aggregator);
+  queue holds ``queue_seconds`` of both streams; IR and depth are paired here (nothing is
+  re-emitted, unlike the pipeline aggregator): by the **hardware** frame counter when the
+  frames carry metadata, else by their timestamps (nearest within half a frame period), never by
+  ``get_frame_number()`` alone: without metadata that is a host-side counter kept per stream, so
+  one frame lost on one stream would pair depth ``k`` with IR ``k±1`` for the rest of the run;
 * per-frame metadata fills :class:`~acquire.depth_camera.FrameTiming`; drops are counted from
   frame-counter gaps; ``host_time_ns`` is ``time.monotonic_ns()`` when the adapter takes the
   frame off the queue (not the SDK callback instant: a late :meth:`RealSenseCamera.poll` makes
   it late; ``time_of_arrival_ms`` keeps the SDK's own arrival time);
 * a camera in master or slave mode **refuses** to deliver frames without hardware timestamps
-  (timestamp domain ``system_time``): sync could not be verified (§0.5, §2.6).
+  (timestamp domain ``system_time``): sync could not be verified (§0.5, §2.6), unless it was
+  made with ``allow_no_metadata=True`` (:func:`acquire.d415_sync.configure_rig` sets it); a run
+  without metadata is always announced by a warning naming the fix (:data:`METADATA_HINT`).
 
 Errors: pyrealsense2 raises plain ``RuntimeError`` (no error types, no codes), so the adapter
 reads the SDK's words to pick the :class:`~mocaprig.errors.DeviceError` subclass (disconnected,
@@ -32,6 +37,7 @@ from __future__ import annotations
 import importlib
 import logging
 import time
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from types import TracebackType
@@ -85,10 +91,12 @@ MIN_SYNC_FIRMWARE: Final = (5, 9, 15, 1)
 """D415 hardware sync arrived with firmware 5.9.15.1 (realsense-d415.md §2.3, #2637)."""
 
 METADATA_HINT: Final = (
-    "per-frame UVC metadata is not enabled. On Linux install the RealSense kernel patch "
+    "per-frame UVC metadata is not enabled (the pyrealsense2 wheel uses the kernel's V4L2 "
+    "backend, whose stock uvcvideo drops it). On Linux install the RealSense kernel patch "
     "(apt install librealsense2-dkms, or librealsense's "
-    "scripts/patch-realsense-ubuntu-lts-hwe.sh); on Windows add the metadata registry keys "
-    "(librealsense's "
+    "scripts/patch-realsense-ubuntu-lts-hwe.sh), or use a pyrealsense2 built with the RSUSB "
+    "backend (cmake -DFORCE_RSUSB_BACKEND=ON), which reads metadata without a kernel patch; on "
+    "Windows add the metadata registry keys (librealsense's "
     "scripts/realsense_metadata_win10.ps1 -op install_all); then replug the camera"
 )
 
@@ -165,9 +173,15 @@ class RealSenseCamera:
     Args:
         device: an ``rs.device`` (USB camera, ``rs.software_device`` or playback device).
         queue_seconds: seconds of both streams the frame queue holds before the SDK drops.
+        allow_no_metadata: deliver frames without hardware timestamps even in master/slave
+            mode (a warning is logged); otherwise :meth:`poll` refuses them.
     """
 
-    def __init__(self, device: Any, *, queue_seconds: float = 2.0) -> None:
+    def __init__(
+        self, device: Any, *, queue_seconds: float = 2.0, allow_no_metadata: bool = False
+    ) -> None:
+        #: Deliver synced frames without metadata (``True``) or refuse them (``False``).
+        self.allow_no_metadata = bool(allow_no_metadata)
         self._rs = import_pyrealsense2()
         self._device = device
         self._queue_seconds = float(queue_seconds)
@@ -180,6 +194,7 @@ class RealSenseCamera:
         self._queue: Any = None
         self._streaming = False
         self._pending: dict[int, dict[StreamKind, D415Frame]] = {}
+        self._by_time: dict[StreamKind, deque[D415Frame]] = {k: deque() for k in StreamKind}
         self._last_counter: int | None = None
         self._framesets = 0
         self._dropped = 0
@@ -393,6 +408,9 @@ class RealSenseCamera:
         self._queue = queue
         self._streaming = True
         self._pending.clear()
+        for q in self._by_time.values():
+            q.clear()
+        self._warned_no_metadata = False
         self._last_counter = None
         self._framesets = self._dropped = self._incomplete = self._resets = 0
         _log.info("D415 %s streaming (frame queue of %d frames)", serial, capacity)
@@ -411,6 +429,8 @@ class RealSenseCamera:
         finally:
             self._queue = None
             self._pending.clear()
+            for q in self._by_time.values():
+                q.clear()
 
     def close(self) -> None:
         """Stop and release the device."""
@@ -457,7 +477,8 @@ class RealSenseCamera:
 
     # -- frame conversion ------------------------------------------------------------------
 
-    def _timing(self, frame: Any, host_time_ns: int) -> FrameTiming:
+    def _timing(self, frame: Any, host_time_ns: int) -> tuple[FrameTiming, bool]:
+        """The frame's timing, and whether its counter is the hardware ``frame_counter``."""
         md = self._rs.frame_metadata_value
 
         def meta(name: str) -> int | None:
@@ -468,7 +489,7 @@ class RealSenseCamera:
 
         counter = meta("frame_counter")
         domain = TimestampDomain(str(frame.get_frame_timestamp_domain()).rsplit(".", 1)[-1])
-        return FrameTiming(
+        timing = FrameTiming(
             frame_counter=int(frame.get_frame_number()) if counter is None else counter,
             sensor_timestamp_us=meta("sensor_timestamp"),
             frame_timestamp_us=meta("frame_timestamp"),
@@ -477,6 +498,7 @@ class RealSenseCamera:
             host_time_ns=host_time_ns,
             timestamp_ms=float(frame.get_timestamp()),
         )
+        return timing, counter is not None
 
     def _accept(self, frame: Any) -> FrameSet | None:
         rs = self._rs
@@ -490,11 +512,27 @@ class RealSenseCamera:
             dtype = np.uint8
         else:
             return None
-        timing = self._timing(frame, host_ns)
+        timing, hw_counter = self._timing(frame, host_ns)
         if not timing.has_hardware_timestamps:
             self._refuse_or_warn(timing)
         image = np.asanyarray(frame.get_data()).astype(dtype, copy=True)  # own the bytes
-        counter = timing.frame_counter
+        got = D415Frame(kind, image, timing)
+        pair = self._pair_by_counter(got) if hw_counter else self._pair_by_time(got)
+        if pair is None:
+            return None
+        ir, depth = pair
+        self._framesets += 1
+        scale = frame.as_depth_frame().get_units() if kind is StreamKind.DEPTH else None
+        return FrameSet(
+            serial=self._info.serial,
+            infrared=ir,
+            depth=depth,
+            depth_scale_m=float(scale) if scale else self.depth_scale_m,
+        )
+
+    def _pair_by_counter(self, got: D415Frame) -> tuple[D415Frame, D415Frame] | None:
+        """Pair by the hardware ``frame_counter`` (one capture, one counter, both streams)."""
+        counter = got.timing.frame_counter
         if self._last_counter is not None and counter < self._last_counter - 1:
             self._resets += 1
             self._incomplete += len(self._pending)
@@ -507,7 +545,7 @@ class RealSenseCamera:
             )
             self._last_counter = None
         slot = self._pending.setdefault(counter, {})
-        slot[kind] = D415Frame(kind, image, timing)
+        slot[got.stream] = got
         if len(slot) < 2:
             return None
         del self._pending[counter]
@@ -518,14 +556,50 @@ class RealSenseCamera:
         if self._last_counter is not None and counter > self._last_counter + 1:
             self._dropped += counter - self._last_counter - 1 - len(stale)
         self._last_counter = counter
-        self._framesets += 1
-        scale = frame.as_depth_frame().get_units() if kind is StreamKind.DEPTH else None
-        return FrameSet(
-            serial=self._info.serial,
-            infrared=slot[StreamKind.INFRARED_LEFT],
-            depth=slot[StreamKind.DEPTH],
-            depth_scale_m=float(scale) if scale else self.depth_scale_m,
+        return slot[StreamKind.INFRARED_LEFT], slot[StreamKind.DEPTH]
+
+    def _pair_by_time(self, got: D415Frame) -> tuple[D415Frame, D415Frame] | None:
+        """Pair frames without a hardware counter by timestamp: the other stream's frame
+        nearest in time, within half a frame period (the SDK's timestamp-matcher rule, §3.2).
+
+        Without metadata ``get_frame_number()`` counts frames on the host, per stream, so a
+        frame lost on one stream shifts that stream's numbers by one for the rest of the run;
+        the timestamps (host receive times, ``system_time``) still tell captures apart. Frames of
+        the other stream too old to match are discarded as incomplete; drops stay invisible.
+        """
+        fps = self._stream.fps if self._stream is not None else 30
+        half_ms = 500.0 / fps
+        t = got.timing.timestamp_ms
+        other = (
+            StreamKind.DEPTH if got.stream is StreamKind.INFRARED_LEFT else StreamKind.INFRARED_LEFT
         )
+        waiting = self._by_time[other]
+        while waiting and waiting[0].timing.timestamp_ms <= t - half_ms:
+            waiting.popleft()
+            self._incomplete += 1
+        best: int | None = None
+        for i, cand in enumerate(waiting):
+            dt = abs(cand.timing.timestamp_ms - t)
+            if dt < half_ms and (best is None or dt < abs(waiting[best].timing.timestamp_ms - t)):
+                best = i
+        if best is None:
+            mine = self._by_time[got.stream]
+            mine.append(got)
+            while len(mine) > 4 * fps:  # the other stream stopped: keep a bounded backlog
+                mine.popleft()
+                self._incomplete += 1
+            return None
+        match = waiting[best]
+        for _ in range(best + 1):  # the match, and anything of that stream older than it
+            waiting.popleft()
+        self._incomplete += best
+        mine = self._by_time[got.stream]
+        while mine and mine[0].timing.timestamp_ms <= t:  # older frames of this stream
+            mine.popleft()
+            self._incomplete += 1
+        if got.stream is StreamKind.INFRARED_LEFT:
+            return got, match
+        return match, got
 
     def _refuse_or_warn(self, timing: FrameTiming) -> None:
         serial = self._info.serial
@@ -534,16 +608,24 @@ class RealSenseCamera:
             if timing.timestamp_domain is TimestampDomain.SYSTEM_TIME
             else "the frame metadata lacks sensor/frame timestamps"
         )
-        if self._sync_mode is not SyncMode.DEFAULT:
+        if self._sync_mode is not SyncMode.DEFAULT and not self.allow_no_metadata:
             msg = (
                 f"D415 {serial} ({self._sync_mode.name.lower()}): frames carry no hardware "
                 f"timestamps ({why}), so hardware sync cannot be verified and synced recording "
-                f"is refused: {METADATA_HINT}"
+                f"is refused (allow_no_metadata=True / --allow-no-metadata forces it): "
+                f"{METADATA_HINT}"
             )
             raise DeviceError(msg)
         if not self._warned_no_metadata:
             self._warned_no_metadata = True
-            _log.warning("D415 %s: no hardware timestamps (%s): %s", serial, why, METADATA_HINT)
+            _log.warning(
+                "D415 %s (%s): NO FRAME METADATA (%s): IR and depth are paired by timestamp, "
+                "drops are invisible and hardware sync cannot be verified: %s",
+                serial,
+                self._sync_mode.name.lower(),
+                why,
+                METADATA_HINT,
+            )
 
     # -- calibration -----------------------------------------------------------------------
 

@@ -66,6 +66,10 @@ PROTOCOL_VERSION: Final = 1
 BANNER: Final = "MOCAPRIG-SYNCBOX"
 BAUDRATE: Final = 115200
 LINE_MAX: Final = 64
+#: After the banner, how long the line must stay quiet before a command is sent: replies to
+#: earlier ``HELLO``s (a second banner, ``ERR 1`` for one the bootloader garbled) come within
+#: the box's 100 ms answer time and are dropped, not taken as the next command's reply.
+SETTLE_S: Final = 0.15
 
 
 class SyncBoxError(DeviceError):
@@ -121,6 +125,16 @@ class PulseReport:
     """Box clock at the last pulse's rising edge, unwrapped (µs)."""
     host_time_ns: int
     """Host monotonic clock when the line arrived."""
+
+
+#: Each command's reply starts with this (else it is ``ERR <code> <text>``).
+_EXPECTED: Final[dict[str, str]] = {
+    "START": "OK START ",
+    "LISTEN": "OK LISTEN",
+    "STOP": "OK STOP ",
+    "STATUS": "STATUS ",
+    "REPORT": "OK REPORT ",
+}
 
 
 def _serial_module() -> Any:
@@ -313,19 +327,55 @@ class SyncBox:
         )
         return True
 
-    def _transact(self, line: str) -> str:
-        """Send one command and return its reply (``PULSES`` lines are filed on the way)."""
+    def _discard_stale(self) -> None:
+        """Before a command: file the reports already received, drop every other whole line.
+
+        Such a line cannot be the reply to the command about to be sent: a late banner, the
+        late reply to a command that timed out. A partial line stays (its reply loop sees it).
+        """
+        if self._ser is None:
+            msg = f"sync box on {self.port} is not open; use it as a context manager"
+            raise DeviceError(msg)
+        waiting = self._ser.in_waiting
+        if waiting:
+            self._buf += self._ser.read(waiting)
+        while b"\n" in self._buf:
+            raw, self._buf = self._buf.split(b"\n", 1)
+            line = raw.replace(b"\r", b"").decode("ascii", errors="replace").strip()
+            if line and not self._file_report(line):
+                _log.info("sync box on %s: dropped the stale line %r", self.port, line)
+
+    def _transact(self, line: str, expect: str) -> str:
+        """Send one command and return its reply, the first line starting with ``expect``.
+
+        ``PULSES`` lines on the way are filed; other lines (a late banner or reply) are dropped
+        and named in the timeout message if the reply never comes.
+        """
+        self._discard_stale()
         self._write_line(line)
         deadline = time.monotonic() + self._timeout_s
+        dropped: list[str] = []
         while True:
             reply = self._read_line(deadline)
             if reply is None:
+                heard = ""
+                if dropped:
+                    heard = f" (it sent only {'; '.join(repr(d) for d in dropped[:3])})"
                 msg = (
                     f"sync box on {self.port} did not answer {line.split()[0]} within "
-                    f"{self._timeout_s:.1f} s; check the cable, or replug the box"
+                    f"{self._timeout_s:.1f} s{heard}; check the cable, or replug the box"
                 )
                 raise DeviceTimeoutError(msg)
             if self._file_report(reply):
+                continue
+            if not reply.startswith(("ERR ", expect)):
+                _log.info(
+                    "sync box on %s: dropped %r while waiting for the reply to %s",
+                    self.port,
+                    reply,
+                    line.split()[0],
+                )
+                dropped.append(reply)
                 continue
             if reply.startswith("ERR "):
                 parts = reply.split(maxsplit=2)
@@ -391,10 +441,12 @@ class SyncBox:
             )
             raise DeviceError(msg)
         _log.warning("sync box on %s: re-sending %s after the reconnect", self.port, run)
-        self._transact(run)
+        self._transact(run, _EXPECTED[self._run[0]])
 
     def _command(self, line: str) -> str:
-        return self._with_reopen(lambda: self._transact(line), line.split()[0])
+        """Send ``line`` (reopening the port if it fails) and return its reply."""
+        cmd = line.split()[0]
+        return self._with_reopen(lambda: self._transact(line, _EXPECTED[cmd]), cmd)
 
     def _identify(self) -> SyncBoxIdentity:
         """:meth:`_hello`, with an I/O failure on the way turned into a :class:`DeviceError`."""
@@ -415,9 +467,16 @@ class SyncBox:
             raise DeviceDisconnectedError.from_cause(msg, err) from err
 
     def _hello(self) -> SyncBoxIdentity:
-        """Send ``HELLO`` every 0.5 s until the banner arrives (the board may be booting)."""
+        """Send ``HELLO`` every 0.5 s until the banner arrives (the board may be booting).
+
+        Bytes before the banner on its line (what a bootloader answered to an early ``HELLO``)
+        are ignored. After the banner the line must stay quiet for :data:`SETTLE_S`: what comes
+        meanwhile (the replies to the other ``HELLO``s sent while the board booted) is dropped,
+        so that it is not taken as the reply to the next command.
+        """
         deadline = time.monotonic() + self._boot_timeout_s
         others: list[str] = []
+        self._discard_stale()
         while time.monotonic() < deadline:
             self._write_line("HELLO")
             step = min(deadline, time.monotonic() + 0.5)
@@ -427,9 +486,12 @@ class SyncBox:
                     break
                 if self._file_report(line):
                     continue
-                parts = line.split()
-                if parts and parts[0] == BANNER:
-                    return self._identity(line, parts)
+                at = line.find(BANNER)
+                if at >= 0:
+                    banner = line[at:]
+                    identity = self._identity(banner, banner.split())
+                    self._settle()
+                    return identity
                 others.append(line)
         if others:
             heard = "; ".join(repr(o) for o in others[:3])
@@ -443,6 +505,28 @@ class SyncBox:
             "the sync box firmware flashed (firmware/syncbox/syncbox.ino) and the port right?"
         )
         raise DeviceTimeoutError(msg)
+
+    def _settle(self) -> None:
+        """Drop lines until none (but reports) came for :data:`SETTLE_S`; at most 1 s.
+
+        Best effort: an I/O failure meanwhile (the box identified itself, then went away) is
+        left to the next command, which reopens the port as any command does.
+        """
+        serial = self._serial_mod
+        end = time.monotonic() + 1.0
+        quiet_until = min(end, time.monotonic() + SETTLE_S)
+        while True:
+            try:
+                line = self._read_line(quiet_until)
+            except (serial.SerialException, OSError) as err:
+                _log.debug("sync box on %s: I/O failed after the banner: %s", self.port, err)
+                return
+            if line is None:
+                return
+            if self._file_report(line):
+                continue
+            _log.info("sync box on %s: dropped %r after the banner", self.port, line)
+            quiet_until = min(end, time.monotonic() + SETTLE_S)
 
     def _identity(self, line: str, parts: list[str]) -> SyncBoxIdentity:
         try:
@@ -481,19 +565,19 @@ class SyncBox:
             msg = f"hz and width_us must be integers, got {hz!r}, {width_us!r}"
             raise ValidationError(msg)
         line = f"START {int(hz)} {int(width_us)}"
-        self._expect(self._command(line), "OK START")
+        self._expect(self._command(line), _EXPECTED["START"])
         self._run = tuple(line.split())
         self._last_count = 0
 
     def listen(self) -> None:
         """Count rising edges on the IN pin (e.g. the D415 master's pulse)."""
-        self._expect(self._command("LISTEN"), "OK LISTEN")
+        self._expect(self._command("LISTEN"), _EXPECTED["LISTEN"])
         self._run = ("LISTEN",)
         self._last_count = 0
 
     def stop(self) -> int:
         """End the run; return its pulse count."""
-        parts = self._expect(self._command("STOP"), "OK STOP")
+        parts = self._expect(self._command("STOP"), _EXPECTED["STOP"])
         self._run = None
         try:
             count = int(parts[2])
@@ -505,7 +589,7 @@ class SyncBox:
 
     def status(self) -> SyncBoxStatus:
         """The ``STATUS`` reply."""
-        parts = self._expect(self._command("STATUS"), "STATUS ")
+        parts = self._expect(self._command("STATUS"), _EXPECTED["STATUS"])
         try:
             return SyncBoxStatus(
                 SyncBoxMode(parts[1]), int(parts[2]), int(parts[3]), int(parts[4]), int(parts[5])
@@ -518,7 +602,7 @@ class SyncBox:
         """Period of ``PULSES`` reports: 0 (off) or 100..60000 ms."""
         if interval_ms != 0:
             check_range(interval_ms, 100, 60_000, name="interval_ms")
-        self._expect(self._command(f"REPORT {int(interval_ms)}"), "OK REPORT")
+        self._expect(self._command(f"REPORT {int(interval_ms)}"), _EXPECTED["REPORT"])
 
     def read_reports(self, timeout_s: float = 0.0) -> list[PulseReport]:
         """Read what the box sent within ``timeout_s``; return the reports filed so far."""

@@ -11,25 +11,37 @@ Timing and sync (realsense-d415.md §2.3–§2.5, §4.5)
 * Each camera keeps its own hardware clock, the scenario's ``DeviceClock`` (``d415-0`` …),
   stamped in µs and wrapped to u32 (§2.5). Its frame counter starts at an arbitrary value and
   grows by one per capture (dropped captures leave gaps, §4.5).
-* Mode 0 (default) and 1 (master) free-run at the nominal period of their own crystal, i.e.
-  ``1/fps`` device seconds, ``1/(fps·(1 + ppm·1e-6))`` session seconds; the first capture comes
-  ``startup_ms`` plus a random phase after ``start()``.
-* The master emits one pulse per capture, at its exposure start (the pulse-to-exposure phase of a
-  D415 is undocumented, §2.2; assumed 0), while it streams.
-* A slave (mode 2) starts its exposure ``trigger_delay_us`` after each pulse it receives (plus
-  ``trigger_jitter_us`` Gaussian jitter, §4.5). With no pulse for ``trigger_timeout_ms`` after its
-  last capture (or after ``start()``) it triggers itself and free-runs at its own period (§2.4,
-  silently), until a pulse arrives again before its next self-trigger. Pulses less than 35 % of a
-  period after the previous exposure start are ignored (the sensor is busy), so a free-running
-  slave re-locks on the first pulse outside that window. The timeout value is not documented;
-  50 ms (1.5 frame periods at 30 fps) is assumed, and so is the 35 %.
+* Mode 0 (default) and 1 (master) free-run at the self-timed period of their own crystal:
+  ``(1 + free_run_period_ppm·1e-6)/fps`` device seconds (:class:`~drivers_mock.rig.D415Timing`;
+  0 ppm by default, the premise of Intel's "unsynced timestamps keep a constant difference"),
+  i.e. ``1/(fps·(1 + ppm·1e-6))`` session seconds for a clock of ``ppm``; the first capture
+  comes ``startup_ms`` plus a random phase after ``start()``.
+* The master emits one pulse per capture while it streams, at its exposure start or at its
+  readout start (= end of exposure), as ``D415Timing.pulse_at`` says (undocumented for the
+  D415, §2.2; docs/d415-timing.md). The timing comes from the scenario's rig
+  (``Rig.d415_timing``) unless ``timing=`` is given.
+* A slave (mode 2) starts its exposure ``D415Timing.trigger_to_exposure_us`` after each pulse it
+  receives (``trigger_delay_us=`` overrides it; plus ``trigger_jitter_us`` Gaussian jitter,
+  §4.5). With no pulse for ``trigger_timeout_ms`` after its last capture (or after ``start()``)
+  it triggers itself and free-runs at its own self-timed period (§2.4, silently): its frames
+  are then stamped one own period apart, not locked to the master, until a pulse arrives
+  again before its next self-trigger. Pulses less than 35 % of a period after the previous
+  exposure start are ignored (the sensor is busy), so a free-running slave re-locks on the
+  first pulse outside that window. The timeout value is not documented; 50 ms (1.5 frame
+  periods at 30 fps) is assumed, and so is the 35 %.
+* ``global_time_enabled`` (default on, as on a real D415, §2.7): ``timestamp_ms`` switches from
+  the ``hardware_clock`` domain to ``global_time`` ``D415Timing.global_time_ready_s`` (1.5 s)
+  after ``start()``: the frame timestamp mapped onto the host's epoch clock, with a per-unit
+  offset and rate error and per-frame jitter (``D415Timing.global_time_*``). The metadata
+  timestamps stay on the hardware clock.
 * Per frame (§2.8, §4.5): ``sensor_timestamp`` = device µs at mid-exposure; ``frame_timestamp``
   = device µs at the start of the USB transfer, ``exposure/2 + 0.3·period`` later (so
   ``0 ≤ frame − sensor ≤ 10⁶/fps``, §2.6); the host receives the frame after the transfer
   (``bytes / usb_mb_per_s``) and a USB latency of 0.5–2.5 ms; ``time_of_arrival`` is host epoch ms
   (the simulated host clock is the session clock plus ``host_epoch_ns``);
   ``FrameTiming.host_time_ns`` is the session time of arrival (the mock host's monotonic clock);
-  ``timestamp_ms`` = ``frame_timestamp_us / 1000`` in the ``hardware_clock`` domain.
+  ``timestamp_ms`` = ``frame_timestamp_us / 1000`` in the ``hardware_clock`` domain (until
+  global time is ready).
 * ``metadata=False`` (or the fault ``no-metadata``) emulates a kernel without the UVC metadata
   patch (§0.5, §4.5): domain ``system_time``, no device timestamps, a host-made counter without
   gaps, ``timestamp_ms`` = host epoch ms.
@@ -66,6 +78,8 @@ Faults (:class:`D415Fault`, names usable on a command line)
 
 ``clock-wrap``         the u32 µs hardware clock of ``camera`` (default all) wraps to 0 at ``at_s``
                        (default 1 s; §2.5, it happens every 71.6 min of uptime).
+``trigger-dropout``    an intermittent sync cable: each pulse is missed by ``camera`` (default
+                       all slaves) with probability ``rate`` (default 2 %), from ``at_s`` on.
 
 A restart (``stop()`` then ``start()``) also restarts the counter at 0 (§4.5); the first
 ``start()`` begins at an arbitrary value.
@@ -80,7 +94,7 @@ import logging
 import threading
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from types import TracebackType
 from typing import Any, Final, Literal, Self, get_args
 
@@ -111,7 +125,7 @@ from mocaprig.drivers_mock.d415_render import (
     SceneRenderer,
     mode_intrinsics,
 )
-from mocaprig.drivers_mock.rig import D415Spec
+from mocaprig.drivers_mock.rig import D415Spec, D415Timing
 from mocaprig.drivers_mock.scenario import Scenario, build_scenario, stream_rng
 from mocaprig.errors import DeviceDisconnectedError, DeviceError, ValidationError
 
@@ -138,6 +152,7 @@ FaultKind = Literal[
     "no-metadata",
     "counter-reset",
     "clock-wrap",
+    "trigger-dropout",
 ]
 #: Fault names, as accepted by :meth:`D415Fault.parse`.
 FAULT_KINDS: Final[tuple[str, ...]] = get_args(FaultKind)
@@ -287,7 +302,7 @@ class MockD415Rig:
         metadata: bool = True,
         images: bool = True,
         trigger_timeout_ms: float = 50.0,
-        trigger_delay_us: float = 100.0,
+        trigger_delay_us: float | None = None,
         trigger_jitter_us: float = 5.0,
         startup_ms: float = 60.0,
         usb_mb_per_s: float = 350.0,
@@ -295,6 +310,8 @@ class MockD415Rig:
         depth_model: DepthModel | None = None,
         ir_model: IrModel | None = None,
         room: Room | None = None,
+        timing: D415Timing | None = None,
+        global_time_enabled: bool = True,
     ) -> None:
         if pacing not in get_args(Pacing):
             msg = f"pacing must be one of {get_args(Pacing)}, got {pacing!r}"
@@ -302,8 +319,11 @@ class MockD415Rig:
         if quality not in ("fast", "full"):
             msg = f"quality must be 'fast' or 'full', got {quality!r}"
             raise ValidationError(msg)
-        if not (trigger_timeout_ms > 0 and trigger_delay_us >= 0 and trigger_jitter_us >= 0):
-            msg = "trigger_timeout_ms must be > 0, trigger_delay_us and trigger_jitter_us >= 0"
+        timing = scenario.rig.d415_timing if timing is None else timing
+        if trigger_delay_us is not None:
+            timing = replace(timing, trigger_to_exposure_us=float(trigger_delay_us))
+        if not (trigger_timeout_ms > 0 and trigger_jitter_us >= 0):
+            msg = "trigger_timeout_ms must be > 0 and trigger_jitter_us >= 0"
             raise ValidationError(msg)
         self.scenario = scenario
         self.pacing: Pacing = pacing
@@ -311,7 +331,9 @@ class MockD415Rig:
         self.metadata = bool(metadata)
         self.images = bool(images)
         self.trigger_timeout_ns = round(trigger_timeout_ms * 1e6)
-        self.trigger_delay_ns = round(trigger_delay_us * 1e3)
+        self.timing = timing
+        self.global_time_enabled = bool(global_time_enabled)
+        self.trigger_delay_ns = round(timing.trigger_to_exposure_us * 1e3)
         self.trigger_jitter_ns = float(trigger_jitter_us) * 1e3
         self.startup_ns = round(startup_ms * 1e6)
         self.usb_bytes_per_ns = usb_mb_per_s * 1e6 / 1e9
@@ -391,13 +413,26 @@ class MockD415Rig:
         if m is None or m is listener:
             return None
         t = m.pulse_at_or_after(after_ns)
-        if t is None:
-            return None
-        for f in self.faults_for(listener, "slave-trigger-cut"):
-            cut = round((1.0 if f.at_s is None else f.at_s) * 1e9)
-            if t >= cut:
+        dropouts = self.faults_for(listener, "trigger-dropout")
+        for _ in range(10_000):
+            if t is None:
                 return None
-        return t
+            for f in self.faults_for(listener, "slave-trigger-cut"):
+                cut = round((1.0 if f.at_s is None else f.at_s) * 1e9)
+                if t >= cut:
+                    return None
+            if not any(self._pulse_missed(f, listener, t) for f in dropouts):
+                return t
+            t = m.pulse_at_or_after(t + 1)
+        return None
+
+    def _pulse_missed(self, fault: D415Fault, listener: MockD415, t_ns: int) -> bool:
+        """Whether ``listener`` misses the pulse at ``t_ns`` (``trigger-dropout``: a seeded,
+        per-pulse draw, so the same pulse is always missed or always received)."""
+        if fault.at_s is not None and t_ns < fault.at_s * 1e9:
+            return False
+        rng = np.random.default_rng([self.scenario.seed, listener.index, t_ns])
+        return bool(rng.random() < fault.rate)
 
     def aggregate_bits_per_s(self) -> float:
         """The streaming cameras' combined USB payload (depth Z16 + IR Y8, §1.7)."""
@@ -440,6 +475,19 @@ class MockD415:
         self._drop_bad = False
         self._bw_bad = False
         self._resets_done: set[int] = set()
+        #: Deliver synced frames without metadata (``True``) or refuse them, like the adapter.
+        self.allow_no_metadata = False
+        self._warned_no_metadata = False
+        # Undocumented timing of this unit (D415Timing), drawn from streams of their own so
+        # the default world's other draws are unchanged.
+        t = rig.timing
+        unit = stream_rng(rig.scenario.seed, f"d415-unit-timing-{spec.serial}")
+        self.free_run_period_ppm = t.free_run_period_ppm + t.free_run_period_spread_ppm * float(
+            unit.normal()
+        )
+        self._gt_offset_ns = t.global_time_offset_us * 1e3 * float(unit.normal())
+        self._gt_rate = t.global_time_rate_ppm * 1e-6 * float(unit.normal())
+        self._gt_rng = stream_rng(rig.scenario.seed, f"d415-global-time-{spec.serial}")
         #: Every capture since construction, delivered or not (ground truth for tests).
         self.captures: list[CaptureRecord] = []
         #: The render behind the last delivered frameset (marker truth), or ``None``.
@@ -606,9 +654,14 @@ class MockD415:
 
     # -- timeline ----------------------------------------------------------------------------
 
+    def _own_period(self) -> float:
+        """Self-timed frame period: ``1/fps`` of this camera's own clock, times its unit's
+        ``1 + free_run_period_ppm·1e-6`` (:class:`D415Timing`), in session ns."""
+        return 1e9 / self.stream.fps / self.clock.rate * (1.0 + self.free_run_period_ppm * 1e-6)
+
     def _period_ns(self) -> int:
-        """Nominal frame period on this camera's own crystal, in session ns."""
-        return round(1e9 / self.stream.fps / self.clock.rate)
+        """Self-timed frame period (:meth:`_own_period`), rounded to ns."""
+        return round(self._own_period())
 
     def _self_timed(self, k: int) -> int:
         anchor = self._free_anchor
@@ -616,16 +669,27 @@ class MockD415:
             msg = f"D415 {self.spec.serial}: not started"
             raise DeviceError(msg)
         t0, k0 = anchor
-        return t0 + round((k - k0) * 1e9 / self.stream.fps / self.clock.rate)
+        return t0 + round((k - k0) * self._own_period())
+
+    def _pulse_lag_ns(self) -> int:
+        """Pulse after the master's exposure start: 0, or its exposure (``readout-start``)."""
+        if self.rig.timing.pulse_at == "readout-start":
+            return int(self._options.exposure_us) * 1000
+        return 0
 
     def pulse_at_or_after(self, t_ns: int) -> int | None:
-        """The first sync pulse this camera (as master) emits at or after ``t_ns``."""
+        """The first sync pulse this camera (as master) emits at or after ``t_ns``.
+
+        The master emits one pulse per self-timed capture, at its exposure start or at its
+        readout start (``D415Timing.pulse_at``).
+        """
         if self._sync is not SyncMode.MASTER or self._free_anchor is None:
             return None
         if not self._streaming and self._stop_ns is None:
             return None
         t0, _ = self._free_anchor
-        period = 1e9 / self.stream.fps / self.clock.rate
+        t0 += self._pulse_lag_ns()
+        period = self._own_period()
         k = max(0, int(np.ceil((t_ns - t0) / period)))
         t = t0 + round(k * period)
         if t < t_ns:
@@ -821,6 +885,20 @@ class MockD415:
         rig = self.rig
         arrival_epoch_ns = rig.host_epoch_ns + cap.arrival
         if not rig.metadata:
+            if self._sync is not SyncMode.DEFAULT and not self.allow_no_metadata:
+                msg = (
+                    f"D415 {self.spec.serial} (mock, {self._sync.name.lower()}): frames carry no "
+                    "hardware timestamps (no UVC metadata), so synced capture is refused; "
+                    "enable metadata (kernel patch or RSUSB backend) or force it with "
+                    "allow_no_metadata=True (--allow-no-metadata)"
+                )
+                raise DeviceError(msg)
+            if not self._warned_no_metadata:
+                self._warned_no_metadata = True
+                _log.warning(
+                    "mock D415 %s: NO FRAME METADATA: system_time stamps, host-made counters",
+                    self.spec.serial,
+                )
             self._host_counter += 1
             return FrameTiming(
                 frame_counter=self._host_counter,
@@ -837,14 +915,27 @@ class MockD415:
             (int(x) + shift) % _U32
             for x in self.clock.device_ticks(np.array([mid, cap.t_tx], np.int64))
         )
+        domain, stamp_ms = TimestampDomain.HARDWARE_CLOCK, frame_us / 1000.0
+        timing = rig.timing
+        ready_ns = self._start_ns + round(timing.global_time_ready_s * 1e9)
+        if rig.global_time_enabled and cap.t_tx >= ready_ns:
+            # The keeper maps the device clock onto the host's (realsense-d415.md §2.7), with
+            # an offset error, a residual rate error and jitter of its own.
+            err_ns = (
+                self._gt_offset_ns
+                + self._gt_rate * (cap.t_tx - ready_ns)
+                + timing.global_time_jitter_us * 1e3 * float(self._gt_rng.normal())
+            )
+            domain = TimestampDomain.GLOBAL_TIME
+            stamp_ms = (rig.host_epoch_ns + cap.t_tx + err_ns) / 1e6
         return FrameTiming(
             frame_counter=cap.counter,
             sensor_timestamp_us=sensor_us,
             frame_timestamp_us=frame_us,
             time_of_arrival_ms=arrival_epoch_ns // 1_000_000,
-            timestamp_domain=TimestampDomain.HARDWARE_CLOCK,
+            timestamp_domain=domain,
             host_time_ns=cap.arrival,
-            timestamp_ms=frame_us / 1000.0,
+            timestamp_ms=stamp_ms,
         )
 
     def __repr__(self) -> str:
@@ -881,6 +972,8 @@ def mock_cameras(
     depth_model: DepthModel | None = None,
     ir_model: IrModel | None = None,
     room: Room | None = None,
+    timing: D415Timing | None = None,
+    global_time_enabled: bool = True,
     **kwargs: Any,
 ) -> list[MockD415]:
     """Mock D415 cameras over one simulated world (entry point ``mocaprig.mocks: d415``).
@@ -901,6 +994,10 @@ def mock_cameras(
             fault tests at ~0.2 ms per frameset).
         trigger_timeout_ms: A slave's wait for a pulse before it free-runs.
         depth_model, ir_model, room: Image model parameters (:mod:`drivers_mock.d415_render`).
+        timing: The undocumented sync timing (:class:`~drivers_mock.rig.D415Timing`; default:
+            the scenario rig's ``d415_timing``).
+        global_time_enabled: The SDK option (on by default on a real D415): frames switch from
+            ``hardware_clock`` to ``global_time`` ``timing.global_time_ready_s`` after start.
         **kwargs: Further :class:`MockD415Rig` options (``trigger_delay_us``,
             ``trigger_jitter_us``, ``startup_ms``, ``usb_mb_per_s``, ``host_epoch_ns``).
 
@@ -942,6 +1039,8 @@ def mock_cameras(
         depth_model=depth_model,
         ir_model=ir_model,
         room=room,
+        timing=timing,
+        global_time_enabled=global_time_enabled,
         **kwargs,
     )
     return list(rig.cameras)

@@ -141,6 +141,11 @@ class EncoderConfig:
             DROP_DVS is set) per 1 ms bin. ``None`` = unlimited.
         reset_level_adc: Mean raw reset-read ADC value (before the host's ×2; note §9.2).
         reset_noise_adc: Standard deviation of the reset level across pixels and frames.
+        dvs_invert_xy: DVS ORIENTATION_INFO bit 2: the chip's axes are swapped, so Y words
+            carry the image column and X words the image row (note §3.2, §8).
+        aps_invert_xy: APS ORIENTATION_INFO bit 2: readout columns are image rows.
+        aps_flip_x: APS ORIENTATION_INFO bit 1: readout columns run right to left.
+        aps_flip_y: APS ORIENTATION_INFO bit 0: samples within a column run bottom to top.
     """
 
     roi: tuple[int, int, int, int] = (0, 0, DAVIS240C_COLUMNS - 1, DAVIS240C_ROWS - 1)
@@ -159,6 +164,10 @@ class EncoderConfig:
     bandwidth_bytes_per_s: float | None = None
     reset_level_adc: float = 600.0
     reset_noise_adc: float = 6.0
+    dvs_invert_xy: bool = False
+    aps_invert_xy: bool = False
+    aps_flip_x: bool = False
+    aps_flip_y: bool = False
 
     def __post_init__(self) -> None:
         c0, r0, c1, r1 = self.roi
@@ -328,9 +337,11 @@ class DavisWordEncoder:
         if activity.events.size:
             ev = activity.events
             _check_window_events(ev, activity.t0_us, activity.t1_us)
-            if self._base_us:
+            if self._base_us or self._config.dvs_invert_xy:
                 ev = ev.copy()
                 ev["t"] -= self._base_us
+                if self._config.dvs_invert_xy:
+                    ev["x"], ev["y"] = activity.events["y"], activity.events["x"]
             self._events.append(ev)
         self._now_us = max(self._now_us, t1)
         horizon = max(self._emitted_us, self._now_us - self._latency_us)
@@ -445,6 +456,8 @@ class DavisWordEncoder:
         cfg = self._config
         c0, r0, c1, r1 = cfg.roi
         ncols, nrows = c1 - c0 + 1, r1 - r0 + 1
+        if cfg.aps_invert_xy:
+            ncols, nrows = nrows, ncols
         col_us = (_COL_SETTLE_CYCLES + _ROW_CYCLES * nrows) / _ADC_MHZ
         read_us = math.ceil(ncols * col_us)
         start = exposure.start_us - self._base_us
@@ -481,7 +494,8 @@ class DavisWordEncoder:
         self._add_unit(frame_start, _PRI_APS, np.array(head, np.uint16))
 
         # Raw ADC reads (§9.2): the host doubles them, then CDS = reset - signal = ``cds``.
-        cds = np.asarray(exposure.cds, np.float64)[r0 : r1 + 1, c0 : c1 + 1]
+        roi_image = np.asarray(exposure.cds, np.float64)[r0 : r1 + 1, c0 : c1 + 1]
+        cds = self._readout_order(roi_image)
         reset = np.rint(self._rng.normal(cfg.reset_level_adc, cfg.reset_noise_adc, cds.shape))
         reset = np.clip(reset, 193, 1023)
         signal = np.clip(reset - np.rint(np.clip(cds, 0.0, 1023.0) / 2.0), 1, 1023)
@@ -506,6 +520,21 @@ class DavisWordEncoder:
         frame_end = end + read_us + 2
         self._add_unit(frame_end, _PRI_APS, np.array([_special(_SP_FRAME_END)], np.uint16))
         self._aps_free_us = frame_end + 1
+
+    def _readout_order(self, image: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """An ROI image (rows, columns) as the logic reads it out: (sample, readout column).
+
+        The inverse of the host's placement (note §9.2: x = flipX ? n-1-column : column, y
+        likewise, swapped when invertXY).
+        """
+        cfg = self._config
+        by_column = image if cfg.aps_invert_xy else image.T  # (readout column, sample)
+        if cfg.aps_flip_x:
+            by_column = by_column[::-1, :]
+        if cfg.aps_flip_y:
+            by_column = by_column[:, ::-1]
+        out: npt.NDArray[np.float64] = np.ascontiguousarray(by_column.T)
+        return out
 
     @staticmethod
     def _columns(special: int, values: npt.NDArray[np.float64]) -> U16:

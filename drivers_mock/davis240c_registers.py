@@ -10,7 +10,7 @@ pulse that always reads 0 (§3.1).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from enum import IntEnum
 
 __all__ = [
@@ -66,10 +66,24 @@ class DVS(IntEnum):
     WAIT_ON_TRANSFER_STALL = 4
     EXTERNAL_AER_CONTROL = 5
     HAS_PIXEL_FILTER = 10
+    FILTER_PIXEL_0_ROW = 11  # 11..26: 8 (row, column) pairs
     HAS_BACKGROUND_ACTIVITY_FILTER = 30
+    FILTER_BACKGROUND_ACTIVITY = 31
+    FILTER_BACKGROUND_ACTIVITY_TIME = 32
+    FILTER_REFRACTORY_PERIOD = 33
+    FILTER_REFRACTORY_PERIOD_TIME = 34
     HAS_ROI_FILTER = 40
+    FILTER_ROI_START_COLUMN = 41
+    FILTER_ROI_START_ROW = 42
+    FILTER_ROI_END_COLUMN = 43
+    FILTER_ROI_END_ROW = 44
     HAS_SKIP_FILTER = 50
+    FILTER_SKIP_EVENTS = 51
+    FILTER_SKIP_EVENTS_EVERY = 52
     HAS_POLARITY_FILTER = 60
+    FILTER_POLARITY_FLATTEN = 61
+    FILTER_POLARITY_SUPPRESS = 62
+    FILTER_POLARITY_SUPPRESS_TYPE = 63
     HAS_STATISTICS = 80
 
 
@@ -235,10 +249,21 @@ class RegisterFile:
 
     Args:
         on_timestamp_reset: Called on a 0→1 write to MUX TIMESTAMP_RESET.
+        read_only: Values that replace the note's read-only ones for this instance (or add
+            read-only registers), e.g. another ORIENTATION_INFO, HAS_* filter flags, a chip id.
+        power_on: Values that replace the power-on values of writable registers (a set-up
+            left by another program, e.g. an enabled DVS filter).
     """
 
-    def __init__(self, *, on_timestamp_reset: Callable[[], None] | None = None) -> None:
-        self._values: dict[tuple[int, int], int] = dict(_POWER_ON)
+    def __init__(
+        self,
+        *,
+        on_timestamp_reset: Callable[[], None] | None = None,
+        read_only: Mapping[tuple[int, int], int] | None = None,
+        power_on: Mapping[tuple[int, int], int] | None = None,
+    ) -> None:
+        self._read_only: dict[tuple[int, int], int] = {**_READ_ONLY, **(read_only or {})}
+        self._values: dict[tuple[int, int], int] = {**_POWER_ON, **(power_on or {})}
         self._stats: dict[tuple[int, int], int] = dict.fromkeys(_STATISTICS, 0)
         self._on_timestamp_reset = on_timestamp_reset
         self.version = 0
@@ -247,8 +272,8 @@ class RegisterFile:
     def read(self, module: int, param: int) -> int:
         """The value a 0xBF IN request returns (unknown registers read 0)."""
         key = (module, param)
-        if key in _READ_ONLY:
-            return _READ_ONLY[key]
+        if key in self._read_only:
+            return self._read_only[key]
         for base in _STATISTICS:
             if module == base[0] and param in (base[1], base[1] + 1):
                 value = self._stats[base]
@@ -262,7 +287,9 @@ class RegisterFile:
         key = (module, param)
         value &= 0xFFFFFFFF
         self.version += 1
-        if key in _READ_ONLY or any(module == m and param in (p, p + 1) for m, p in _STATISTICS):
+        if key in self._read_only or any(
+            module == m and param in (p, p + 1) for m, p in _STATISTICS
+        ):
             _log.debug("DAVIS mock: write to read-only register %s ignored", key)
             return
         if key == (DavisModule.MUX, MUX.TIMESTAMP_RESET):

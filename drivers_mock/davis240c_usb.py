@@ -17,6 +17,16 @@ from the driver, so a test can catch the two disagreeing:
 * time: ``pacing="asap"`` advances device time by ``chunk_us`` per step inside ``bulk_read``
   (deterministic, for tests); ``pacing="realtime"`` lets device time follow the wall clock while
   the counter runs (for live demos);
+* the output FIFO: between the logic and the host there is only ``fifo_bytes`` of buffering.
+  While the host reads nothing (:meth:`Davis240CBackend.stall_host`, deterministic) device time
+  runs on, the FIFO fills, and then the logic drops DVS / ext-input words (counted in MUX
+  STATISTICS_DVS_DROPPED / STATISTICS_EXTINPUT_DROPPED) and holds APS / IMU words and wraps
+  until the host reads again (note §3.1, §7.1);
+* per-instance identity: ``read_only`` replaces read-only registers (ORIENTATION_INFO, the DVS
+  HAS_* filter flags, the chip id...), ``power_on`` writable ones (a filter left on by another
+  program), ``product_id`` the USB PID. The data path renders what the ORIENTATION_INFO
+  registers say: with DVS bit 2 the Y words carry the column; the APS flips reverse the
+  readout order;
 * faults (:class:`DavisFaults`): unplug, a stalled endpoint, an odd-length transfer, a
   device-side timestamp reset, a USB bandwidth cap (DVS drops counted in MUX
   STATISTICS_DVS_DROPPED), the 0xFFFF wrap race.
@@ -27,6 +37,7 @@ which timestamp resets do not rewind.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import importlib.util
 import logging
@@ -34,6 +45,7 @@ import math
 import struct
 import threading
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -490,6 +502,9 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         source: What the sensor sees (device µs windows).
         serial: The 8-character serial string (string descriptor 3).
         faults: Faults to inject.
+        fault: Faults by name (what ``mocaprig doctor --mock --fault davis:NAME`` passes):
+            ``"unplug"`` (gone 150 ms into streaming) and ``"usb-bandwidth"`` (a 200 kB/s link:
+            DVS events dropped on the device); combined with ``faults``.
         pacing: ``"asap"`` or ``"realtime"``.
         chunk_us: Device µs simulated per step (≈ the 1 ms early-packet delay, note §1.3).
         latency_us: The encoder's hold-back (:class:`DavisWordEncoder`).
@@ -499,6 +514,13 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         seed: Seed of the APS reset-level noise.
         buffer_bytes: Bytes the device, FX2 and host buffers hold before the output counts as
             stalled (only reachable with realtime pacing and a host that stops reading).
+        fifo_bytes: Output FIFO depth between the logic and the host while the host does not
+            read (:meth:`stall_host`). The note gives no figure; the default, 4096 bytes, is
+            the FX2's whole endpoint buffer memory (CY7C68013A: 4 KiB for EP2/4/6/8), the most
+            EP2 can hold; the logic's own FIFO is not counted (unknown).
+        read_only: Read-only register values for this instance (module doc).
+        power_on: Power-on values of writable registers for this instance.
+        product_id: USB PID (0x841B FX2; 0x841A an FX3 board).
     """
 
     def __init__(
@@ -515,8 +537,17 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         port_number: int = 2,
         seed: int = 0,
         buffer_bytes: int = 4 << 20,
+        fifo_bytes: int = 4096,
+        read_only: Mapping[tuple[int, int], int] | None = None,
+        power_on: Mapping[tuple[int, int], int] | None = None,
+        product_id: int = DAVIS240C_PID,
     ) -> None:
         super().__init__()
+        if fifo_bytes < 2:
+            msg = f"fifo_bytes must be >= 2 (one word), got {fifo_bytes}"
+            raise ValidationError(msg)
+        self._fifo_bytes = int(fifo_bytes)
+        self._host_reading = True
         if len(serial) != 8 or not serial.isascii():
             msg = f"serial must be 8 ASCII characters (libcaer skips longer ones), got {serial!r}"
             raise ValidationError(msg)
@@ -546,7 +577,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
             bDeviceProtocol=0,
             bMaxPacketSize0=_EP0_MAX_PACKET,
             idVendor=DAVIS_VID,
-            idProduct=DAVIS240C_PID,
+            idProduct=product_id,
             bcdDevice=0x0004,
             iManufacturer=_STR_MANUFACTURER,
             iProduct=_STR_PRODUCT,
@@ -563,7 +594,9 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         self._endpoint = _EndpointDescriptor()
         self._configuration = 1
         self._claimed: set[int] = set()
-        self.registers = RegisterFile(on_timestamp_reset=self._timestamp_reset)
+        self.registers = RegisterFile(
+            on_timestamp_reset=self._timestamp_reset, read_only=read_only, power_on=power_on
+        )
         self._encoder = DavisWordEncoder(
             self._encoder_config(),
             latency_us=latency_us,
@@ -604,6 +637,28 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         with self._lock:
             self._held = False
 
+    def stall_host(self, us: int, *, step_us: int = 100) -> None:
+        """The host reads nothing for ``us`` µs: the device runs on (asap pacing).
+
+        Device time advances in ``step_us`` steps; its output goes into the ``fifo_bytes``
+        FIFO and, once that is full, DVS and ext-input words are dropped (counted in the MUX
+        statistics) while APS / IMU words and wraps wait, as on the device (note §7.1). The
+        host sees no gap in the stream afterwards, only fewer events.
+        """
+        if us < 0 or step_us <= 0:
+            msg = f"stall_host needs us >= 0 and step_us > 0, got {us}, {step_us}"
+            raise ValidationError(msg)
+        with self._lock:
+            self._host_reading = False
+            try:
+                left = int(us)
+                while left > 0:
+                    dt = min(int(step_us), left)
+                    self._step(dt)
+                    left -= dt
+            finally:
+                self._host_reading = True
+
     # -- device model ------------------------------------------------------------------------------
 
     def _encoder_config(self) -> EncoderConfig:
@@ -617,6 +672,8 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         )
         if roi[0] > roi[2] or roi[1] > roi[3]:
             roi = (0, 0, 239, 179)
+        dvs_orientation = r.get(m.DVS, DVS.ORIENTATION_INFO)
+        aps_orientation = r.get(m.APS, APS.ORIENTATION_INFO)
         return EncoderConfig(
             roi=roi,
             accel_full_scale=r.get(m.IMU, IMU.ACCEL_FULL_SCALE) & 3,
@@ -633,6 +690,10 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
             drop_dvs_on_transfer_stall=r.flag(m.MUX, MUX.DROP_DVS_ON_TRANSFER_STALL),
             drop_extinput_on_transfer_stall=r.flag(m.MUX, MUX.DROP_EXTINPUT_ON_TRANSFER_STALL),
             bandwidth_bytes_per_s=self.faults.bandwidth_bytes_per_s,
+            dvs_invert_xy=bool(dvs_orientation & 4),
+            aps_invert_xy=bool(aps_orientation & 4),
+            aps_flip_x=bool(aps_orientation & 2),
+            aps_flip_y=bool(aps_orientation & 1),
         )
 
     def _configure_source(self) -> None:
@@ -724,6 +785,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
                 self.faults.stalled(self.uptime_us)
                 or not r.flag(m.USB, USB.RUN)
                 or len(self._out) >= self._buffer_bytes
+                or (not self._host_reading and len(self._out) >= self._fifo_bytes)
             )
             self._out += self._encoder.encode(self._gate(activity), output_blocked=blocked)
             if self._encoder.forced_resets:
@@ -1051,6 +1113,28 @@ def _simulator_source(world: Scenario) -> DavisActivitySource:
     return source
 
 
+#: Faults by name: the :class:`DavisFaults` fields each one sets.
+NAMED_FAULTS: dict[str, dict[str, Any]] = {
+    "unplug": {"unplug_at_us": 150_000},
+    "usb-bandwidth": {"bandwidth_bytes_per_s": 2.0e5},
+}
+
+
+def named_faults(names: Sequence[str], *, base: DavisFaults | None = None) -> DavisFaults:
+    """:class:`DavisFaults` with the named faults (:data:`NAMED_FAULTS`) set on ``base``.
+
+    Raises:
+        ValidationError: an unknown name.
+    """
+    fields: dict[str, Any] = {}
+    for name in names:
+        if name not in NAMED_FAULTS:
+            msg = f"unknown DAVIS mock fault {name!r}; choose from {sorted(NAMED_FAULTS)}"
+            raise ValidationError(msg)
+        fields.update(NAMED_FAULTS[name])
+    return dataclasses.replace(base or DavisFaults(), **fields)
+
+
 def mock_backend(
     *,
     source: DavisActivitySource | None = None,
@@ -1059,6 +1143,7 @@ def mock_backend(
     seconds: float | None = None,
     serial: str | None = None,
     faults: DavisFaults | None = None,
+    fault: Sequence[str] | str | None = None,
     pacing: Pacing = "asap",
     **kwargs: Any,
 ) -> Davis240CBackend:
@@ -1076,8 +1161,11 @@ def mock_backend(
         faults: Faults to inject.
         pacing: ``"asap"`` (deterministic) or ``"realtime"`` (follows the wall clock).
         **kwargs: Passed to :class:`Davis240CBackend` (``chunk_us``, ``latency_us``, ``bus``,
-            ``address``, ``port_number``).
+            ``address``, ``port_number``, ``fifo_bytes``, ``read_only``, ``power_on``,
+            ``product_id``).
     """
+    if fault:
+        faults = named_faults([fault] if isinstance(fault, str) else list(fault), base=faults)
     world: Scenario | None = None if isinstance(scenario, str) else scenario
     if (
         source is None

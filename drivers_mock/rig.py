@@ -42,6 +42,7 @@ from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "D415Spec",
+    "D415Timing",
     "DavisSpec",
     "PinholeCamera",
     "Rig",
@@ -55,6 +56,8 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 SyncRole = Literal["master", "slave"]
+
+PulseAt = Literal["exposure-start", "readout-start"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -323,6 +326,94 @@ class D415Spec:
         }
 
 
+@dataclass(frozen=True, slots=True)
+class D415Timing:
+    """D415 sync timing the specifications leave open: parameters of the world, not facts.
+
+    Nothing here is documented for the D415 itself (realsense-d415.md §2.2, §6;
+    docs/d415-timing.md). Two published readings exist; both are available as presets:
+
+    * :meth:`exposure_start` (the default, what the calibration assumes today): the master's
+      pin-5 pulse marks its exposure start and a slave starts exposing 100 µs after the edge;
+    * :meth:`readout_start` (Intel's answers for the D4xx family, librealsense #8470, #3570,
+      #10998, #9220): the frame timestamp is taken at readout start and the pulse follows it,
+      i.e. the edge comes at the end of the master's exposure, and trigger-to-exposure is
+      ≈ 0.77 ms.
+
+    The estimators (sync check, calibration) are never told these values.
+
+    Attributes:
+        pulse_at: Where the master's pulse falls: its ``"exposure-start"`` or its
+            ``"readout-start"`` (= end of its exposure).
+        trigger_to_exposure_us: A slave's exposure starts this long after the trigger edge.
+        free_run_period_ppm: A self-timed camera (master, mode 0, a slave without trigger)
+            captures every ``(1 + ppm·1e-6)/fps`` seconds **of its own clock**; 0 is the premise
+            of Intel's "unsynced timestamps keep a constant difference".
+        free_run_period_spread_ppm: Unit-to-unit spread (σ) of that period error.
+        global_time_ready_s: ``global_time_enabled``: frames switch from ``hardware_clock`` to
+            ``global_time`` this long after the stream starts (the keeper's 15 samples at
+            100 ms, realsense-d415.md §2.7).
+        global_time_offset_us: σ of each camera's constant global-time offset error (the
+            keeper's half round-trip estimate).
+        global_time_rate_ppm: σ of each camera's residual global-time rate error.
+        global_time_jitter_us: σ of the per-frame global-time jitter.
+    """
+
+    pulse_at: PulseAt = "exposure-start"
+    trigger_to_exposure_us: float = 100.0
+    free_run_period_ppm: float = 0.0
+    free_run_period_spread_ppm: float = 0.0
+    global_time_ready_s: float = 1.5
+    global_time_offset_us: float = 150.0
+    global_time_rate_ppm: float = 0.1
+    global_time_jitter_us: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.pulse_at not in ("exposure-start", "readout-start"):
+            msg = (
+                f"D415Timing.pulse_at must be 'exposure-start' or 'readout-start', "
+                f"got {self.pulse_at!r}"
+            )
+            raise ValidationError(msg)
+        values = (
+            self.trigger_to_exposure_us,
+            self.free_run_period_spread_ppm,
+            self.global_time_ready_s,
+            self.global_time_offset_us,
+            self.global_time_rate_ppm,
+            self.global_time_jitter_us,
+        )
+        if not all(np.isfinite(v) and v >= 0 for v in values):
+            msg = "D415Timing: delays, spreads and the global-time ready time must be >= 0"
+            raise ValidationError(msg)
+        if not (np.isfinite(self.free_run_period_ppm) and abs(self.free_run_period_ppm) < 1e3):
+            msg = "D415Timing.free_run_period_ppm must be finite and below 1000 in magnitude"
+            raise ValidationError(msg)
+
+    @classmethod
+    def exposure_start(cls) -> D415Timing:
+        """Pulse at the master's exposure start, slaves 0.1 ms after the edge (the default)."""
+        return cls()
+
+    @classmethod
+    def readout_start(cls) -> D415Timing:
+        """Pulse at the master's readout start (end of exposure), trigger-to-exposure 0.77 ms."""
+        return cls(pulse_at="readout-start", trigger_to_exposure_us=770.0)
+
+    def to_dict(self) -> dict[str, object]:
+        """A JSON-ready description."""
+        return {
+            "pulse_at": self.pulse_at,
+            "trigger_to_exposure_us": self.trigger_to_exposure_us,
+            "free_run_period_ppm": self.free_run_period_ppm,
+            "free_run_period_spread_ppm": self.free_run_period_spread_ppm,
+            "global_time_ready_s": self.global_time_ready_s,
+            "global_time_offset_us": self.global_time_offset_us,
+            "global_time_rate_ppm": self.global_time_rate_ppm,
+            "global_time_jitter_us": self.global_time_jitter_us,
+        }
+
+
 #: DAVIS240C: 240×180 pixels of 18.5 µm (eventcap-method.md §4.3).
 DAVIS_WIDTH = 240
 DAVIS_HEIGHT = 180
@@ -425,11 +516,13 @@ class Rig:
         d415: The depth cameras, master first.
         davis: The event camera.
         vicon: The reference system.
+        d415_timing: The D415s' undocumented sync timing (:class:`D415Timing`).
     """
 
     d415: tuple[D415Spec, ...]
     davis: DavisSpec
     vicon: ViconSpec
+    d415_timing: D415Timing = D415Timing()
 
     @property
     def cameras(self) -> dict[str, PinholeCamera]:
@@ -456,6 +549,7 @@ class Rig:
             "d415": [d.to_dict() for d in self.d415],
             "davis": self.davis.to_dict(),
             "vicon": self.vicon.to_dict(),
+            "d415_timing": self.d415_timing.to_dict(),
         }
 
 

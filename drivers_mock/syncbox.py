@@ -9,10 +9,11 @@ Behaviour (protocol version 1, ``<board>`` = ``mock``, feature ``toggle``):
 * lines of at most 64 characters, host ``\\n``-terminated, ``\\r`` and empty lines ignored; the box
   ends its lines with ``\\r\\n``; every command gets exactly one reply line (``ERR <code> <text>``
   for unknown commands, bad arguments, ``busy`` runs and over-long lines);
-* ``START <hz> <width_us>`` generates pulses on the box's own clock from the command on (the
-  first pulse at once, count reset), ``LISTEN`` counts an external pulse train (``listen_hz``,
-  default 30 Hz: the D415 master's frame pulse; ``None`` = nothing wired, the count stays 0; or
-  ``pulse_source``, e.g. a realtime mock D415 master's ``pulse_at_or_after``),
+* ``START <hz> <width_us>`` generates pulses on the box's own clock from the command on (count
+  reset; the first pulse one period after the command, as the firmware's timer), ``LISTEN``
+  counts an external pulse train (``listen_hz``, default 30 Hz: the D415 master's frame pulse;
+  ``None`` = nothing wired, the count stays 0; or ``pulse_source``, e.g. a realtime mock D415
+  master's ``pulse_at_or_after``),
   ``STOP`` replies with the run's count, ``STATUS`` with mode, rate, width, count and the box
   clock, ``REPORT <ms>`` sets the period of the unsolicited ``PULSES <count> <t_us>`` reports
   (default 1000 ms; sent only during a run, never between ``OK STOP`` and the next run);
@@ -221,12 +222,13 @@ class MockSyncBox:
     def _pulses(self, now_ns: int) -> tuple[int, int | None]:
         """(count, box µs of the last counted pulse) of the current run at session ``now_ns``."""
         if self._mode == "GENERATE" and self._hz > 0:
-            # The box's own timer: pulses every 1/hz box seconds from the START.
+            # The box's own timer, as the firmware's Timer1: it starts at 0 with the output low
+            # and the first pulse rises one period (on the box clock) after the START.
             t0 = self._box_us(self._run_start_ns)
             now = self._box_us(now_ns)
             period_us = 1e6 / self._hz
-            n = int((now - t0) // period_us) + 1
-            return n, t0 + round((n - 1) * period_us)
+            n = int((now - t0) // period_us)
+            return (n, t0 + round(n * period_us)) if n > 0 else (0, None)
         if self._mode == "LISTEN" and self.pulse_source is not None:
             return self._count_source(now_ns)
         if self._mode == "LISTEN" and self.listen_hz is not None:

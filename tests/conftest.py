@@ -27,7 +27,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         "--hardware",
         action="store_true",
         default=False,
-        help="run the device-contract tests against real hardware too (DAVIS240C on USB)",
+        help="run the device-contract tests against real hardware too (DAVIS240C, D415s, sync box)",
     )
 
 

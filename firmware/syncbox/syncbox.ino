@@ -3,6 +3,9 @@
 // Board: Arduino Uno or Nano (ATmega328P, 16 MHz). Build with the Arduino IDE or
 //   arduino-cli compile --fqbn arduino:avr:uno firmware/syncbox
 //   arduino-cli upload  --fqbn arduino:avr:uno -p /dev/ttyACM0 firmware/syncbox
+// or, with the Debian/Ubuntu packages gcc-avr binutils-avr avr-libc arduino-core-avr,
+//   make firmware   (firmware/syncbox/build.py: build/firmware/{uno,nano}/syncbox.hex)
+//   avrdude -p m328p -c arduino -P /dev/ttyACM0 -b 115200 -U flash:w:build/firmware/uno/syncbox.hex:i
 //
 // Pins (wiring: docs/wiring.md):
 //   D9  (OC1A)  OUT: the generated pulse train, 5 V logic, driven by Timer1 in hardware
@@ -15,17 +18,22 @@
 //               LISTEN, each generated pulse in GENERATE), so each of its edges, rising or
 //               falling, is one pulse: a square wave at half the frame rate that a Vicon analog
 //               input resolves at any rate (docs/wiring.md section 7). Low when idle and at the
-//               start of a run. Flipped by a write to PINB as the first instruction of the pulse
-//               interrupt: ~1-2 us after the D2 edge in LISTEN (the interrupt response plus the
-//               ISR prologue; up to ~5 us more when the millis/serial interrupts are running);
-//               in GENERATE the Timer1 overflow fires one timer tick before D9 rises, so D10
-//               leads D9 by about one tick minus that latency (~2-3 us at 30 Hz). Verify with a
+//               start of a run. Flipped by `sbi PINB, 2`, the very first instruction of both
+//               pulse interrupts (naked entry stubs, below), before any register is saved: 9
+//               cycles (0.56 us at 16 MHz) from the interrupt request to the flip, counted in this
+//               firmware's disassembly (firmware/syncbox/build.py --latency). So D10 flips
+//               ~0.6-0.9 us after the D2 edge in LISTEN, up to ~9.6 us when the edge comes
+//               while a millis/serial interrupt runs; in GENERATE within one Timer1 tick of the
+//               D9 rising edge (the overflow flag is set at TOP, one tick before D9 rises at
+//               BOTTOM, or with it: the datasheet can be read both ways). Table, and what is
+//               measured and what assumed: docs/syncbox-protocol.md, "Latency". Verify with a
 //               scope (D2 or D9 against D10).
 //   D13 (LED)   on while a run is active.
 //
-// Timing: PULSES' <t_us> is micros() captured in the interrupt of each pulse (4 us resolution
-// on a 16 MHz board; u32, wraps every 71.6 min). In GENERATE mode the Timer1 overflow interrupt
-// fires one timer tick before the rising edge (the output is set at BOTTOM, right after TOP).
+// Timing: PULSES' <t_us> is micros() captured in the interrupt of each pulse, ~4 us after the
+// D10 flip (4 us resolution on a 16 MHz board; u32, wraps every 71.6 min). In GENERATE mode the
+// Timer1 overflow interrupt comes at TOP, at most one timer tick before the rising edge (the
+// output is set at BOTTOM, right after TOP); the first pulse rises one period after START.
 // The rate comes from the board's crystal (or ceramic resonator on many clones: up to
 // +-0.5 %, check the real rate with a scope or frequency counter).
 
@@ -62,21 +70,41 @@ static bool g_overflow = false;
 
 // -- pulse sources ---------------------------------------------------------------------------
 
-// Writing 1 to a PINx bit flips that PORTx bit (ATmega328P): one instruction, done first.
-#define TOGGLE_OUT() (PINB = _BV(PINB2))
+#if !defined(__AVR_ATmega328P__)
+#error "the pulse interrupt stubs below are written for the ATmega328P (Uno/Nano)"
+#endif
 
-ISR(TIMER1_OVF_vect) {
-  TOGGLE_OUT();
+// The work shared by both pulse sources. Entered by a jmp from the two entry stubs below, never
+// called: a signal handler, so it saves what it uses and returns from the interrupt (reti).
+// Its name starts with "__vector" only because avr-gcc warns about a signal handler named
+// otherwise.
+extern "C" void __vector_syncbox_pulse(void) __attribute__((signal, used, externally_visible));
+void __vector_syncbox_pulse(void) {
   g_count++;
   g_last_us = micros();
 }
 
-// INT0 directly rather than attachInterrupt(): no call through the core's handler table, so
-// the toggle comes sooner and with less jitter.
-ISR(INT0_vect) {
-  TOGGLE_OUT();
-  g_count++;
-  g_last_us = micros();
+// The two pulse vectors: flip D10 first, then continue in the shared handler. Writing 1 to a
+// PINx bit flips that PORTx bit (ATmega328P); `sbi` does it in 2 cycles and touches no register
+// and no status flag, so nothing needs saving before it (ISR_NAKED: no prologue). The two asm
+// strings differ (the comment), so the compiler's identical code folding cannot merge the
+// stubs: with ordinary ISRs of identical bodies, -flto folded one into a wrapper that saved
+// every register and called the other (the toggle ~4.8 us late, and a nested reti).
+// tests/firmware/ checks in the built ELF that each vector jumps to its own stub that starts
+// with this sbi.
+ISR(TIMER1_OVF_vect, ISR_NAKED) {
+  asm volatile(
+      "sbi %0, %1 ; TIMER1_OVF: flip D10\n\t"
+      "jmp __vector_syncbox_pulse" ::"I"(_SFR_IO_ADDR(PINB)),
+      "I"(PINB2));
+}
+
+// INT0 directly rather than attachInterrupt(): no call through the core's handler table.
+ISR(INT0_vect, ISR_NAKED) {
+  asm volatile(
+      "sbi %0, %1 ; INT0: flip D10\n\t"
+      "jmp __vector_syncbox_pulse" ::"I"(_SFR_IO_ADDR(PINB)),
+      "I"(PINB2));
 }
 
 static void start_listening() {
@@ -94,7 +122,21 @@ static void read_counter(uint32_t *count, uint32_t *t_us) {
   interrupts();
 }
 
-// Timer1 fast PWM mode 14: period = (ICR1 + 1) ticks, high time = (OCR1A + 1) ticks.
+// D9 low, the OC1A output latch included. Timer1 drives D9 from that latch, which keeps its
+// level when the timer stops: after a STOP during a pulse it stays high, and the next START
+// would emit a partial pulse the moment the output is reconnected, before the first count.
+// Forcing a compare match (FOC1A, non-PWM mode only) with "clear on match" clears the latch.
+// Call with the Timer1 clock stopped.
+static void force_out_low() {
+  TCCR1A = _BV(COM1A1);  // normal mode, clear OC1A on compare match
+  TCCR1C = _BV(FOC1A);   // forced compare match: the latch goes low
+  TCCR1A = 0;            // OC1A disconnected: D9 follows PORTB1
+  PORTB &= ~_BV(PORTB1);
+}
+
+// Timer1 fast PWM mode 14: period = (ICR1 + 1) ticks, high time = (OCR1A + 1) ticks. The
+// counter starts at 0 with D9 low and the first pulse rises one full period after START (the
+// overflow at TOP counts it one tick earlier).
 static bool start_generator(uint16_t hz, uint32_t width_us) {
   static const uint16_t prescalers[] = {1, 8, 64, 256, 1024};
   static const uint8_t cs_bits[] = {_BV(CS10), _BV(CS11), _BV(CS11) | _BV(CS10), _BV(CS12),
@@ -107,8 +149,8 @@ static bool start_generator(uint16_t hz, uint32_t width_us) {
     uint32_t width = (uint32_t)(((uint64_t)width_us * tick_hz + 999999UL) / 1000000UL);
     if (width < 1 || width >= period) return false;
     noInterrupts();
-    TCCR1A = 0;
-    TCCR1B = 0;
+    TCCR1B = 0;  // clock stopped
+    force_out_low();
     TCNT1 = 0;
     PORTB &= ~_BV(PORTB2);  // the toggle output starts low
     ICR1 = (uint16_t)(period - 1);
@@ -128,11 +170,10 @@ static bool start_generator(uint16_t hz, uint32_t width_us) {
 static void stop_sources() {
   noInterrupts();
   TCCR1B = 0;
-  TCCR1A = 0;
   TIMSK1 = 0;
-  interrupts();
+  force_out_low();  // a pulse in progress is cut short
   EIMSK &= ~_BV(INT0);
-  digitalWrite(PIN_OUT, LOW);
+  interrupts();
   digitalWrite(PIN_TOGGLE, LOW);
   digitalWrite(PIN_LED, LOW);
 }

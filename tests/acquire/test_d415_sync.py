@@ -42,13 +42,26 @@ class Rig:
     metadata: bool = True
     reset_at: dict[int, int] = field(default_factory=dict)
     """camera index → capture index at which its counter restarts at 0 (ESD)."""
+    own_period_ppm: dict[int, float] = field(default_factory=dict)
+    """camera index → error of its self-timed period on its own clock (ppm; default 0)."""
+    global_time: bool = False
+    """``global_time_enabled``: frames switch to ``global_time`` ``global_ready_s`` after the
+    camera's first frame, stamped on the host clock with a per-camera offset error."""
+    global_ready_s: float = 1.5
+    keeper_offset_us: float = 300.0
 
 
-def make_rig(n: int = 4, *, seed: int = 0, **kw: object) -> Rig:
+def make_rig(n: int = 4, *, seed: int = 0, min_ppm_apart: float = 8.0, **kw: object) -> Rig:
+    """A rig whose slaves' crystals differ from the reference's by at least ``min_ppm_apart``:
+    timestamps cannot verify the sync of crystals that agree (Intel's check; tested apart)."""
     rng = np.random.default_rng(seed)
+    ppm = list(rng.uniform(-50, 50, n))
+    for i in range(1, n):
+        while abs(ppm[i] - ppm[0]) < min_ppm_apart:
+            ppm[i] = float(rng.uniform(-50, 50))
     return Rig(
         serials=[f"8{i:02d}312070{seed:03d}" for i in range(n)],
-        ppm=list(rng.uniform(-50, 50, n)),
+        ppm=ppm,
         offset_us=list(rng.uniform(1e7, 3e9, n)),
         counter0=list(rng.integers(0, 5000, n)),
         **kw,  # type: ignore[arg-type]
@@ -62,7 +75,9 @@ def stream(rig: Rig, seconds: float, *, seed: int = 1) -> Iterator[tuple[str, Fr
     events: list[tuple[int, str, FrameTiming]] = []
     # master: camera 0 triggers on its own timer (its clock), so true period = T/(1+ppm0)
     n_frames = int(seconds * rig.fps)
-    trig = np.arange(n_frames) * period / (1 + rig.ppm[0] * 1e-6) + 0.013
+    own0 = 1 + rig.own_period_ppm.get(0, 0.0) * 1e-6
+    trig = np.arange(n_frames) * period * own0 / (1 + rig.ppm[0] * 1e-6) + 0.013
+    keeper = rng.normal(0, rig.keeper_offset_us, len(rig.serials))
     for i, serial in enumerate(rig.serials):
         ppm = rig.ppm[i] * 1e-6
         capture: list[float] = []
@@ -75,7 +90,7 @@ def stream(rig: Rig, seconds: float, *, seed: int = 1) -> Iterator[tuple[str, Fr
                     capture.append(t + rig.trigger_delay_us * 1e-6 + rng.normal(0, 1e-6))
                 else:
                     # free-run: first self-trigger after the timeout, then its own period
-                    own = period / (1 + ppm)
+                    own = period * (1 + rig.own_period_ppm.get(i, 0.0) * 1e-6) / (1 + ppm)
                     first = k == 0 or trig[k - 1] < cut
                     step = rig.timeout_factor * own if first else own
                     capture.append(capture[-1] + step if capture else t)
@@ -92,14 +107,19 @@ def stream(rig: Rig, seconds: float, *, seed: int = 1) -> Iterator[tuple[str, Fr
             sensor = round(dev) % WRAP
             host_ns = int((t + 0.004 + abs(rng.normal(0, 0.001))) * 1e9)
             if rig.metadata:
+                frame_ts = (sensor + int(0.4e6 / rig.fps)) % WRAP
+                domain, stamp_ms = TimestampDomain.HARDWARE_CLOCK, frame_ts / 1e3
+                if rig.global_time and t - capture[0] >= rig.global_ready_s:
+                    domain = TimestampDomain.GLOBAL_TIME
+                    stamp_ms = (t + 0.4 / rig.fps) * 1e3 + (keeper[i] + rng.normal(0, 5)) / 1e3
                 timing = FrameTiming(
                     frame_counter=base + kk,
                     sensor_timestamp_us=sensor,
-                    frame_timestamp_us=(sensor + int(0.4e6 / rig.fps)) % WRAP,
+                    frame_timestamp_us=frame_ts,
                     time_of_arrival_ms=host_ns // 1_000_000,
-                    timestamp_domain=TimestampDomain.HARDWARE_CLOCK,
+                    timestamp_domain=domain,
                     host_time_ns=host_ns,
-                    timestamp_ms=sensor / 1e3,
+                    timestamp_ms=stamp_ms,
                 )
             else:
                 timing = FrameTiming(
@@ -362,20 +382,168 @@ def test_external_trigger_uses_a_slave_as_reference() -> None:
     assert report.master == rig.serials[0]
 
 
-def test_slave_never_triggered_warns_of_zero_drift() -> None:
-    """Free-running from the start: its own period equals the master's in their own clocks."""
-    rig = make_rig(seed=14, cut={1: 0.0}, timeout_factor=1.0)
+# -- Intel's rate check: synced timestamps drift apart, unsynced ones keep their difference ----
+# (realsense-ros #2323, #1889; librealsense #14131). These replace the old "zero-drift" warning
+# tests, which let a never-triggered slave pass.
+
+
+@pytest.mark.parametrize("global_time", [False, True])
+def test_slave_never_triggered_is_free_running(global_time: bool) -> None:
+    """Free-running from the start: its own period equals the master's in their own clocks, so
+    the hardware timestamps keep a constant difference (no phase jump ever happens)."""
+    rig = make_rig(seed=14, cut={1: 0.0}, timeout_factor=1.0, global_time=global_time)
     report = run(rig).report()
+    assert not report.ok
     cam = report.cameras[rig.serials[1]]
-    assert SyncFlag.ZERO_DRIFT in cam.flags
+    assert SyncFlag.FREE_RUNNING in cam.flags
     assert cam.drift_ppm is not None
     assert abs(cam.drift_ppm) < 1.0
-    assert all(SyncFlag.ZERO_DRIFT not in report.cameras[s].flags for s in rig.serials[2:])
+    assert cam.free_running_since_s is not None
+    assert cam.free_running_since_s < 0.1
+    assert cam.rate_reference == ("global-time" if global_time else "host-arrival")
+    if global_time:  # its exposures walk against the master's at the crystals' difference
+        truth = ((1 + rig.ppm[0] * 1e-6) / (1 + rig.ppm[1] * 1e-6) - 1) * 1e6
+        assert cam.walk_ppm == pytest.approx(truth, abs=1.0)
+    for serial in rig.serials[2:]:
+        assert report.cameras[serial].flags == ()
 
 
-def test_mock_slave_cut_from_the_start_warns_of_zero_drift() -> None:
-    report, cams = _mock_run("slave-trigger-cut:at_s=0")
-    assert SyncFlag.ZERO_DRIFT in report.cameras[cams[1].info.serial].flags
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_synced_rig_passes_across_the_switch_to_global_time(seed: int) -> None:
+    """Real D415s switch from hardware_clock to global_time ~1.5 s into the stream."""
+    rig = make_rig(seed=seed, global_time=True)
+    report = run(rig, seed=seed).report()
+    assert report.ok, report.to_dict()
+    for i, serial in enumerate(rig.serials[1:], start=1):
+        cam = report.cameras[serial]
+        assert cam.flags == ()
+        assert cam.timestamp_domain is TimestampDomain.GLOBAL_TIME
+        assert cam.rate_reference == "global-time"
+        truth = ((1 + rig.ppm[i] * 1e-6) / (1 + rig.ppm[0] * 1e-6) - 1) * 1e6
+        assert cam.drift_ppm == pytest.approx(truth, abs=0.5)
+        assert cam.crystal_ppm == pytest.approx(truth, abs=1.0)
+        assert cam.walk_ppm == pytest.approx(0.0, abs=1.0)
+
+
+def test_synced_rig_without_global_time_is_read_against_host_arrival() -> None:
+    rig = make_rig(seed=21)
+    report = run(rig, seconds=20.0).report()
+    assert report.ok, report.to_dict()
+    for serial in rig.serials[1:]:
+        cam = report.cameras[serial]
+        assert cam.rate_reference == "host-arrival"
+        assert cam.walk_ppm is not None
+        assert abs(cam.walk_ppm) < 10.0
+
+
+@pytest.mark.parametrize("own_ppm", [-25.0, 20.0])
+def test_free_running_slave_with_a_period_of_its_own_is_caught_by_its_walk(
+    own_ppm: float,
+) -> None:
+    """If a unit's self-timed period is not exactly nominal on its own clock, a never-triggered
+    slave's hardware timestamps drift like a synced one's; its walk in host time still shows."""
+    rig = make_rig(seed=15, cut={2: 0.0}, timeout_factor=1.0, global_time=True)
+    rig.own_period_ppm = {2: own_ppm}
+    report = run(rig).report()
+    cam = report.cameras[rig.serials[2]]
+    assert cam.drift_ppm is not None
+    assert abs(cam.drift_ppm) > 10.0  # the naive "timestamps drift apart" rule would pass it
+    assert SyncFlag.FREE_RUNNING in cam.flags
+    assert not report.ok
+
+
+def test_crystals_that_agree_cannot_be_verified() -> None:
+    """Equal crystals: a locked slave's timestamps keep a constant difference too."""
+    rig = make_rig(2, seed=16, global_time=True)
+    rig.ppm[1] = rig.ppm[0] + 0.2
+    report = run(rig).report()
+    cam = report.cameras[rig.serials[1]]
+    assert cam.flags == (SyncFlag.SYNC_UNVERIFIED,)
+    assert not report.ok
+
+
+def test_a_run_too_short_to_resolve_the_drift_is_only_warned() -> None:
+    rig = make_rig(2, seed=17)
+    rig.ppm[1] = rig.ppm[0] + 3.0
+    report = run(rig, seconds=1.5).report()
+    assert report.cameras[rig.serials[1]].flags == (SyncFlag.TOO_SHORT,)
+    assert report.ok  # inconclusive, not failed: 10 s runs resolve it
+    assert run(rig, seconds=10.0).report().cameras[rig.serials[1]].flags == ()
+
+
+def test_intermittent_trigger_is_flagged_at_the_first_missed_pulse() -> None:
+    """A slave that misses one pulse self-triggers after its timeout: a phase jump."""
+    rig = make_rig(3, seed=18, cut={1: 5.0}, timeout_factor=1.5)
+    events = list(stream(rig, 10.0))
+    # the trigger comes back after 0.2 s: keep the free-run frames only until then
+    roles = {s: (SyncMode.MASTER if i == 0 else SyncMode.SLAVE) for i, s in enumerate(rig.serials)}
+    back = make_rig(3, seed=18)
+    relocked = {
+        (s, t.frame_counter): t
+        for s, t in stream(back, 10.0)
+        if s == rig.serials[1] and t.host_time_ns > 5.2e9
+    }
+    checker = SyncChecker(roles, SyncCheckConfig(fps=30))
+    for serial, timing in events:
+        if serial == rig.serials[1] and timing.host_time_ns > 5.2e9:
+            timing = relocked.get((serial, timing.frame_counter), timing)
+        checker.feed(serial, timing)
+    cam = checker.report().cameras[rig.serials[1]]
+    assert SyncFlag.FREE_RUNNING in cam.flags
+    assert cam.free_running_since_s is not None
+    assert 4.9 <= cam.free_running_since_s + 0.013 <= 5.3
+
+
+def test_mock_slave_never_triggered_fails_in_both_domains() -> None:
+    for global_time in (False, True):
+        cams: list[Any] = open_cameras(
+            "mock",
+            seed=3,
+            seconds=11.0,
+            fault="slave-trigger-cut:at_s=0",
+            images=False,
+            global_time_enabled=global_time,
+        )
+        report = run_sync_check(cams, seconds=10.0)
+        victim = report.cameras[cams[1].info.serial]
+        assert SyncFlag.FREE_RUNNING in victim.flags, (global_time, victim)
+        assert not report.ok
+        assert all(report.cameras[c.info.serial].ok for c in cams[2:])
+        want = TimestampDomain.GLOBAL_TIME if global_time else TimestampDomain.HARDWARE_CLOCK
+        assert victim.timestamp_domain is want
+
+
+@pytest.mark.parametrize("global_time", [False, True])
+def test_mock_synced_rig_passes_in_both_domains(global_time: bool) -> None:
+    cams: list[Any] = open_cameras(
+        "mock", seed=4, seconds=11.0, images=False, global_time_enabled=global_time
+    )
+    report = run_sync_check(cams, seconds=10.0)
+    assert report.ok, report.to_dict()
+    for cam in cams[1:]:
+        found = report.cameras[cam.info.serial]
+        assert found.rate_reference == ("global-time" if global_time else "host-arrival")
+        assert found.walk_ppm is not None
+
+
+def test_mock_intermittent_trigger_is_flagged() -> None:
+    report, cams = _mock_run("trigger-dropout:rate=0.02,camera=d415-2")
+    victim = report.cameras[cams[2].info.serial]
+    assert SyncFlag.FREE_RUNNING in victim.flags
+    missed = [r for r in cams[2].captures if not r.triggered and r.exposure_start_ns > 0.5e9]
+    assert missed  # the truth: it did trigger itself
+    assert all(report.cameras[c.info.serial].ok for c in cams if c is not cams[2])
+
+
+def test_mock_readout_convention_passes_the_check() -> None:
+    """The check does not depend on where the pulse falls (D415Timing is the world's secret)."""
+    from mocaprig.drivers_mock.rig import D415Timing
+
+    cams: list[Any] = open_cameras(
+        "mock", seed=5, seconds=8.0, images=False, timing=D415Timing.readout_start()
+    )
+    report = run_sync_check(cams, seconds=7.0)
+    assert report.ok, report.to_dict()
 
 
 def test_mock_without_metadata_fails_the_check() -> None:
@@ -396,3 +564,20 @@ def test_any_clean_rig_passes(seed: int, fps: int, jitter_us: float, delay_us: f
     rig = make_rig(3, seed=seed % 100_000, fps=fps, jitter_us=jitter_us, trigger_delay_us=delay_us)
     report = run(rig, seconds=4.0, seed=seed).report()
     assert report.ok, report.to_dict()
+
+
+def test_cli_stream_without_metadata_needs_the_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["d415", "stream", "--mock", "--mock-fault", "no-metadata", "--seconds", "1"]
+    assert main([*argv, "--json"]) == 1
+    assert "allow-no-metadata" in capsys.readouterr().err
+    assert main([*argv, "--allow-no-metadata", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert all(c["frames"] > 20 for c in out["cameras"].values())
+
+
+def test_cli_check_sync_reports_a_never_triggered_slave(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["d415", "check-sync", "--mock", "--mock-fault", "slave-trigger-cut:at_s=0"]
+    assert main([*argv, "--seconds", "6"]) == 1
+    out = capsys.readouterr().out
+    assert "sync FAILED" in out
+    assert "free-running" in out

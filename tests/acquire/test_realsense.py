@@ -504,3 +504,88 @@ def test_stopping_a_camera_that_went_away_is_a_disconnected_error() -> None:
     assert not cam.is_streaming
     sw.sensor.stop()
     sw.sensor.close()
+
+
+# -- issue 13: no silent mis-pairing without metadata ----------------------------------------------
+
+
+def _inject_no_metadata(sw: SwCamera, stream: str, *, number: int, capture: int) -> None:
+    """One frame as the V4L2 backend without the kernel patch delivers it: ``system_time``
+    stamp (host receive ms) and a host-side frame number counted per stream."""
+    prof, bpp, dtype = (sw.depth, 2, np.uint16) if stream == "depth" else (sw.ir, 1, np.uint8)
+    frame = rs.software_video_frame()
+    frame.pixels = np.full((H, W), capture % 200 + 1, dtype)
+    frame.bpp = bpp
+    frame.stride = W * bpp
+    frame.timestamp = 1_767_225_600_000.0 + capture * 33.333 + (0.4 if stream == "ir" else 0.0)
+    frame.frame_number = number
+    frame.domain = rs.timestamp_domain.system_time
+    frame.profile = prof.as_video_stream_profile()
+    if stream == "depth":
+        frame.depth_units = 0.001
+    sw.sensor.on_video_frame(frame)
+
+
+def test_a_lost_ir_frame_without_metadata_never_pairs_different_exposures(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Host-side numbers shift by one on the IR stream after its lost frame; pairing by those
+    numbers would pair depth k with IR k+1 for the rest of the run."""
+    sw = make_software_d415()
+    with caplog.at_level("WARNING"), started(sw, SyncMode.DEFAULT) as cam:
+        ir_number = 0
+        for capture in range(12):
+            _inject_no_metadata(sw, "depth", number=capture, capture=capture)
+            if capture != 4:  # IR of capture 4 is lost on USB
+                _inject_no_metadata(sw, "ir", number=ir_number, capture=capture)
+                ir_number += 1
+        sets = []
+        while (fs := cam.poll(0.3)) is not None:
+            sets.append(fs)
+    assert len(sets) == 11
+    for fs in sets:  # both images of every set come from one capture
+        assert int(fs.infrared.image[0, 0]) == int(fs.depth.image[0, 0])
+        assert abs(fs.infrared.timing.timestamp_ms - fs.depth.timing.timestamp_ms) < 1.0
+    assert [int(fs.depth.image[0, 0]) - 1 for fs in sets] == [c for c in range(12) if c != 4]
+    assert cam.stats.incomplete_framesets == 1
+    assert "NO FRAME METADATA" in caplog.text
+    assert "FORCE_RSUSB_BACKEND" in caplog.text
+    assert "librealsense2-dkms" in caplog.text
+
+
+def test_synced_capture_without_metadata_can_be_forced_and_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    sw = make_software_d415()
+    cam = RealSenseCamera(sw.device, allow_no_metadata=True)
+    cam.configure(stream=StreamConfig(), options=OPTIONS, sync_mode=SyncMode.SLAVE)
+    with caplog.at_level("WARNING"), cam:
+        cam.start()
+        for capture in range(3):
+            _inject_no_metadata(sw, "depth", number=capture, capture=capture)
+            _inject_no_metadata(sw, "ir", number=capture, capture=capture)
+        got = [cam.poll(0.5) for _ in range(3)]
+    assert all(fs is not None and not fs.timing.has_hardware_timestamps for fs in got)
+    assert "(slave): NO FRAME METADATA" in caplog.text
+
+
+def test_configure_rig_refuses_synced_cameras_without_metadata_unless_forced() -> None:
+    from mocaprig.acquire.d415_sync import configure_rig, start_rig
+
+    for allow in (False, True):
+        sws = [make_software_d415(f"40000000000{i}") for i in range(2)]
+        cams = [RealSenseCamera(sw.device) for sw in sws]
+        configure_rig(cams, allow_no_metadata=allow)
+        assert all(c.allow_no_metadata is allow for c in cams)
+        start_rig(cams)
+        try:
+            _inject_no_metadata(sws[1], "depth", number=0, capture=0)
+            if allow:
+                _inject_no_metadata(sws[1], "ir", number=0, capture=0)
+                assert cams[1].poll(0.5) is not None
+            else:
+                with pytest.raises(DeviceError, match=r"refused.*--allow-no-metadata"):
+                    cams[1].poll(0.5)
+        finally:
+            for c in cams:
+                c.stop()

@@ -465,3 +465,102 @@ def test_io_failing_while_identifying_the_box_is_a_device_error(
         SyncBox("/dev/ttyACM0", boot_timeout_s=0.3).open()
     assert exc.value.__cause__ is err
     assert exc.value.backend_error == str(err)
+
+
+# -- stale lines: a banner or reply that is not the answer to the command just sent ----------------
+
+
+def _replying(extra: dict[str, list[str]]) -> Responder:
+    """``protocol_box`` whose answers to some commands are replaced by ``extra[command]``."""
+    base = protocol_box()
+
+    def respond(line: str) -> list[str]:
+        cmd = line.split()[0]
+        return extra[cmd] if cmd in extra else base(line)
+
+    return respond
+
+
+def test_a_second_banner_is_not_taken_as_the_next_reply() -> None:
+    # A booting board prints its banner, then answers a HELLO that waited in its buffer.
+    banner = f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake"
+    fake = FakeBox(_replying({"HELLO": [banner, banner]}))
+    try:
+        with SyncBox(fake.port, timeout_s=0.5) as box:
+            box.set_report_interval(100)
+            assert box.status().mode is SyncBoxMode.IDLE
+        assert fake.received == ["HELLO", "REPORT 100", "STATUS"]
+    finally:
+        fake.close()
+
+
+def test_an_err_for_a_garbled_hello_is_dropped_after_the_banner() -> None:
+    # The bootloader ate the start of a HELLO; the sketch answers "LO" with ERR 1.
+    banner = f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake"
+    fake = FakeBox(_replying({"HELLO": [banner, "ERR 1 unknown command"]}))
+    try:
+        with SyncBox(fake.port, timeout_s=0.5) as box:
+            box.start(hz=30, width_us=100)
+            assert box.running
+    finally:
+        fake.close()
+
+
+def test_bytes_before_the_banner_are_ignored() -> None:
+    banner = f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake toggle"
+    fake = FakeBox(_replying({"HELLO": ["\x14\x10" + banner]}))  # a bootloader's STK500 bytes
+    try:
+        with SyncBox(fake.port, timeout_s=0.5) as box:
+            assert box.identity is not None
+            assert (box.identity.board, box.identity.features) == ("fake", ("toggle",))
+    finally:
+        fake.close()
+
+
+def test_stale_lines_before_a_command_are_dropped_and_reports_kept(fake: FakeBox) -> None:
+    with SyncBox(fake.port, timeout_s=0.5) as box:
+        fake.push(f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake")  # late banner
+        fake.push("OK STOP 3")  # late reply to a command that timed out
+        fake.push("PULSES 5 1000")
+        deadline = time.monotonic() + 2
+        while fake.pending_out and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+        assert box.stop() == 42  # not the stale "OK STOP 3"
+        assert [r.count for r in box.read_reports()] == [5]
+
+
+def test_a_late_banner_before_the_reply_is_skipped() -> None:
+    banner = f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake"
+    fake = FakeBox(_replying({"STATUS": [banner, "STATUS IDLE 0 0 0 12"]}))
+    try:
+        with SyncBox(fake.port, timeout_s=0.5) as box:
+            status = box.status()
+            assert (status.mode, status.t_us) == (SyncBoxMode.IDLE, 12)
+    finally:
+        fake.close()
+
+
+def test_a_timeout_names_the_lines_dropped_meanwhile() -> None:
+    banner = f"MOCAPRIG-SYNCBOX {PROTOCOL_VERSION} fake"
+    fake = FakeBox(_replying({"STATUS": [banner]}))
+    try:
+        with (
+            SyncBox(fake.port, timeout_s=0.3) as box,
+            pytest.raises(DeviceTimeoutError, match=r"did not answer STATUS.*MOCAPRIG-SYNCBOX"),
+        ):
+            box.status()
+    finally:
+        fake.close()
+
+
+def test_a_booting_mock_is_identified_then_answers_commands() -> None:
+    # The mock discards input while it "boots", then prints its banner once (as an Uno does).
+    with (
+        open_mock_syncbox(seed=4, boot_delay_s=0.7) as mock,
+        SyncBox(mock.port, boot_timeout_s=3.0) as box,
+    ):
+        assert box.identity is not None
+        assert box.identity.board == "mock"
+        box.set_report_interval(0)
+        assert box.status().mode is SyncBoxMode.IDLE

@@ -283,9 +283,17 @@ def test_timing_metadata_is_consistent(timing_rig: list[MockD415]) -> None:
         counters = np.array([fs.timing.frame_counter for fs in fss])
         counters0.append(int(counters[0]))
         assert np.all(np.diff(counters) == 1)
+        start_ns = fss[0].timing.host_time_ns
         for fs in fss:
             t = fs.timing
-            assert t.timestamp_domain is TimestampDomain.HARDWARE_CLOCK
+            # global_time_enabled is on by default, as on a real D415: the keeper is ready
+            # ~1.5 s after start (realsense-d415.md §2.7)
+            late = t.host_time_ns - start_ns > 1.6e9
+            early = t.host_time_ns - start_ns < 1.3e9
+            if early:
+                assert t.timestamp_domain is TimestampDomain.HARDWARE_CLOCK
+            if late:
+                assert t.timestamp_domain is TimestampDomain.GLOBAL_TIME
             assert t.has_hardware_timestamps
             assert t.frame_timestamp_us is not None
             assert t.sensor_timestamp_us is not None
@@ -387,6 +395,7 @@ def test_missing_metadata(world: Scenario) -> None:
     cams = mock_cameras(scenario=world, images=False, count=2, faults="no-metadata;drops")
     _configure(cams)
     for c in cams:
+        c.allow_no_metadata = True
         c.start()
     fss = _drain(cams[:1])[cams[0].info.serial]
     assert fss
@@ -503,3 +512,125 @@ def test_a_slave_started_first_free_runs_then_locks(world: Scenario) -> None:
     triggered = [r.triggered for r in cams[1].captures]
     assert not any(triggered[:10])
     assert all(triggered[-10:])
+
+
+# -- issue 13: the mock's cut trigger, free-running slave, global time and timing conventions ----
+
+
+def test_synced_capture_without_metadata_is_refused_unless_allowed(
+    world: Scenario, caplog: pytest.LogCaptureFixture
+) -> None:
+    cams = mock_cameras(scenario=world, images=False, count=2, metadata=False)
+    _configure(cams)
+    for c in cams:
+        c.start()
+    with pytest.raises(DeviceError, match=r"no hardware timestamps.*allow_no_metadata"):
+        cams[0].poll()
+    cams[1].allow_no_metadata = True
+    with caplog.at_level(logging.WARNING):
+        assert cams[1].poll() is not None
+    assert "NO FRAME METADATA" in caplog.text
+
+
+def test_global_time_switches_domain_after_the_keeper_is_ready(world: Scenario) -> None:
+    (cam,) = mock_cameras(scenario=world, images=False, count=1)
+    _configure([cam], synced=False)
+    cam.start()
+    fss = _drain([cam])[cam.info.serial]
+    t0 = fss[0].timing.host_time_ns
+    switch = next(fs for fs in fss if fs.timing.timestamp_domain is TimestampDomain.GLOBAL_TIME)
+    assert 1.3e9 < switch.timing.host_time_ns - t0 < 1.7e9
+    domains = [fs.timing.timestamp_domain for fs in fss]
+    first = domains.index(TimestampDomain.GLOBAL_TIME)
+    assert set(domains[:first]) == {TimestampDomain.HARDWARE_CLOCK}
+    assert set(domains[first:]) == {TimestampDomain.GLOBAL_TIME}
+    # global time is host epoch ms, within the keeper's error of the arrival time
+    for fs in fss[first:]:
+        t = fs.timing
+        assert t.time_of_arrival_ms is not None
+        assert 0 < t.time_of_arrival_ms - t.timestamp_ms < 10.0
+    (off,) = mock_cameras(scenario=world, images=False, count=1, global_time_enabled=False)
+    _configure([off], synced=False)
+    off.start()
+    assert {fs.timing.timestamp_domain for fs in _drain([off])[off.info.serial]} == {
+        TimestampDomain.HARDWARE_CLOCK
+    }
+
+
+def test_never_triggered_slave_runs_on_its_own_clock(world: Scenario) -> None:
+    """Own crystal, own nominal period, not locked to the master: its hardware timestamps step
+    one nominal period per frame, like the master's, while its exposures walk against the
+    master's in session time at the crystals' difference."""
+    cams = mock_cameras(scenario=world, images=False, count=2, faults="slave-trigger-cut:at_s=0")
+    _configure(cams)
+    for c in cams:
+        c.start()
+    frames = _drain(cams)
+    master, slave = cams
+    assert not any(r.triggered for r in slave.captures)
+    steps = {}
+    for cam in cams:
+        raw = np.array([fs.timing.sensor_timestamp_us for fs in frames[cam.info.serial]], float)
+        steps[cam.index] = np.median(np.diff(raw))
+    assert steps[0] == pytest.approx(1e6 / 30, abs=2)
+    assert steps[1] == pytest.approx(1e6 / 30, abs=2)
+    period_m = np.diff([r.exposure_start_ns for r in master.captures]).mean()
+    period_s = np.diff([r.exposure_start_ns for r in slave.captures[1:]]).mean()
+    walk_ppm = (period_s / period_m - 1) * 1e6
+    truth = (master.clock.rate / slave.clock.rate - 1) * 1e6
+    assert walk_ppm == pytest.approx(truth, abs=1.0)
+
+
+def test_own_period_error_is_a_world_parameter(world: Scenario) -> None:
+    from mocaprig.drivers_mock.rig import D415Timing
+
+    timing = D415Timing(free_run_period_ppm=40.0)
+    (cam,) = mock_cameras(scenario=world, images=False, count=1, timing=timing)
+    _configure([cam], synced=False)
+    cam.start()
+    raw = np.array([fs.timing.sensor_timestamp_us for fs in _drain([cam])[cam.info.serial]])
+    step = float(np.median(np.diff(raw.astype(float))))
+    assert step == pytest.approx(1e6 / 30 * (1 + 40e-6), abs=1.5)
+
+
+@pytest.mark.parametrize(
+    ("preset", "lag_us"),
+    [("exposure_start", 100.0), ("readout_start", 8500.0 + 770.0)],
+)
+def test_pulse_convention_moves_the_slave_exposure(
+    world: Scenario, preset: str, lag_us: float
+) -> None:
+    """exposure-start: slave exposes 0.1 ms after the master; readout-start (Intel's answers):
+    the pulse comes at the master's readout start, and the slave 0.77 ms after it."""
+    from mocaprig.drivers_mock.rig import D415Timing
+
+    timing = getattr(D415Timing, preset)()
+    cams = mock_cameras(scenario=world, images=False, count=2, timing=timing)
+    _configure(cams)
+    for c in cams:
+        c.start()
+    _drain(cams)
+    master, slave = cams
+    starts = np.array([r.exposure_start_ns for r in master.captures])
+    lags = []
+    for r in slave.captures:
+        if r.triggered:
+            assert r.pulse_ns is not None
+            k = int(np.argmin(np.abs(starts - (r.pulse_ns - 1))))
+            if preset == "readout_start":
+                k = int(np.argmin(np.abs(starts + 8_500_000 - r.pulse_ns)))
+            lags.append((r.exposure_start_ns - starts[k]) / 1e3)
+    assert lags
+    assert np.median(lags) == pytest.approx(lag_us, abs=20.0)
+
+
+def test_trigger_dropout_makes_single_self_triggered_frames(world: Scenario) -> None:
+    cams = mock_cameras(scenario=world, images=False, count=2, faults="trigger-dropout:rate=0.05")
+    _configure(cams)
+    for c in cams:
+        c.start()
+    _drain(cams)
+    slave = cams[1].captures
+    selfs = [i for i, r in enumerate(slave) if not r.triggered]
+    assert selfs
+    assert any(slave[i + 1].triggered for i in selfs if i + 1 < len(slave))  # it re-locks

@@ -52,7 +52,7 @@ def test_hello_start_reports_status_stop(box: MockSyncBox) -> None:
         time.sleep(0.45)
         status = host.send("STATUS").split()
         assert status[:4] == ["STATUS", "GENERATE", "30", "100"]
-        assert 12 <= int(status[4]) <= 17  # ~0.45 s at 30 Hz, first pulse at START
+        assert 11 <= int(status[4]) <= 16  # ~0.45 s at 30 Hz, first pulse a period after START
         assert host.send("START 90 100") == "ERR 3 busy"
         stop = host.send("STOP").split()
         assert stop[:2] == ["OK", "STOP"]
@@ -158,5 +158,59 @@ def test_listen_counts_a_pulse_source() -> None:
             status = host.send("STATUS").split()
             count = int(host.send("STOP").split()[2])
             assert 20 <= int(status[4]) <= count <= 35
+        finally:
+            host.close()
+
+
+class _SessionClock:
+    """A session clock the test sets by hand (ns), so the box counts no wall time."""
+
+    def __init__(self) -> None:
+        self.now_ns = 0
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+
+def test_the_first_generated_pulse_comes_one_period_after_start() -> None:
+    # As the firmware's Timer1: it starts at 0 with D9 low and first reaches TOP after a period.
+    clock = _SessionClock()
+    with mock_syncbox(seed=5, session_clock_ns=clock) as b:
+        host = _Host(b.port)
+        try:
+            assert host.send("REPORT 0") == "OK REPORT 0"
+            assert host.send("START 10 100") == "OK START 10 100"  # period 100 ms
+            counts = {}
+            # The box clock drifts by at most 20 ppm: 1 % of a period either side is clear.
+            for t_ms in (0, 99, 101, 199, 201, 550):
+                clock.now_ns = t_ms * 1_000_000
+                counts[t_ms] = int(host.send("STATUS").split()[4])
+            assert counts == {0: 0, 99: 0, 101: 1, 199: 1, 201: 2, 550: 5}
+            clock.now_ns = 550_000_000
+            assert host.send("STOP") == "OK STOP 5"
+        finally:
+            host.close()
+
+
+def test_reports_stamp_the_last_pulse_on_the_box_clock() -> None:
+    clock = _SessionClock()
+    with mock_syncbox(seed=6, session_clock_ns=clock) as b:
+        host = _Host(b.port)
+        try:
+            assert host.send("REPORT 100") == "OK REPORT 100"
+            t0_us = int(host.send("STATUS").split()[5])  # the box clock at session time 0
+            assert host.send("START 30 100") == "OK START 30 100"
+            clock.now_ns = 1_050_000_000  # 31.5 periods: 31 pulses, the last at 31/30 s
+            deadline = time.monotonic() + 5
+            while not host.reports and time.monotonic() < deadline:
+                host.ser.timeout = 0.1
+                raw = host.ser.readline()
+                if raw.startswith(b"PULSES "):
+                    host.reports.append(raw.decode("ascii").strip())
+            host.ser.timeout = 1.0
+            assert host.reports, "no PULSES report"
+            _, count, t_us = host.reports[0].split()
+            assert int(count) == 31
+            assert (int(t_us) - t0_us) % (1 << 32) == round(31 * 1e6 / 30)
         finally:
             host.close()
