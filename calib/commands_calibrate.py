@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from mocaprig.calib.commands_charuco import add_board_parser, add_intrinsics_parser
+from mocaprig.calib.vicon_calibration_options import D415_PULSE_CONVENTIONS, SLAVE_TRIGGER_DELAY_US
 from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.progress import ProgressBar
 
@@ -43,7 +44,13 @@ Vicon markers and the intrinsics fixed. A camera whose reprojection RMS exceeds 
 (default 1.5 px) or with fewer than --min-inliers observations is refused (exit 1) unless
 --force is given. Clocks: from the video (reprojection); when the C3D has the analog channel
 --sync-channel (default D415_SYNC: the sync box's toggle output, docs/wiring.md §7), the D415
-clocks come from its edges instead (µs, sub-ppm); the notes say which was used.
+clocks come from its edges instead (µs, sub-ppm); the notes say which was used. Relating a
+D415 frame (stamped mid-exposure) to a sync pulse needs where the master's pulse falls, which
+is undocumented for the D415: --d415-pulse-at exposure-start (default) or readout-start
+(Intel's answers for the D4xx family), measured on the rig with the LED test of
+docs/d415-timing.md §4; a wrong one moves the sync-channel and DAVIS clocks by about one
+exposure, or leaves them unpaired. The calibration file records the convention assumed
+(statistics d415_pulse_at_readout_start, d415_slave_trigger_delay_us).
 
 examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml
@@ -53,6 +60,8 @@ examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --report report/
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel "Sync.1"
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel none
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --d415-pulse-at readout-start
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --slave-trigger-delay-us 790
 """
 
 _EVALUATE_EPILOG = """\
@@ -111,6 +120,23 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
         help="Vicon analog channel with the D415 frame pulses (default D415_SYNC; none: video "
         "clocks only)",
     )
+    vic.add_argument(
+        "--d415-pulse-at",
+        choices=D415_PULSE_CONVENTIONS,
+        default=D415_PULSE_CONVENTIONS[0],
+        help="where the D415 master's sync pulse falls: at its exposure start (default) or at "
+        "its readout start, i.e. the end of its exposure (Intel's answers for the D4xx family); "
+        "measure it with the LED test, docs/d415-timing.md §4",
+    )
+    vic.add_argument(
+        "--slave-trigger-delay-us",
+        type=float,
+        default=None,
+        metavar="US",
+        help="a D415 slave's exposure start after the pulse (µs; default: the convention's, "
+        f"{SLAVE_TRIGGER_DELAY_US['exposure-start']:g} for exposure-start, "
+        f"{SLAVE_TRIGGER_DELAY_US['readout-start']:g} for readout-start)",
+    )
     add_json_flag(vic)
     vic.set_defaults(func=calibrate_vicon_command)
 
@@ -153,6 +179,8 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
             raise CalibrationError(msg)
     kw: dict[str, Any] = {"force": args.force, "seed": args.seed, "unit": args.unit}
     kw["sync_channel"] = None if args.sync_channel.lower() == "none" else args.sync_channel
+    kw["d415_pulse_at"] = args.d415_pulse_at
+    kw["slave_trigger_delay_us"] = args.slave_trigger_delay_us
     if args.max_rms_px is not None:
         kw["max_rms_px"] = args.max_rms_px
     if args.min_inliers is not None:

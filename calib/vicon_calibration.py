@@ -83,11 +83,16 @@ from mocaprig.calib.vicon_calibration_davis import (
     davis_pulse_inputs,
 )
 from mocaprig.calib.vicon_calibration_frames import (
+    CalibCamera,
     calib_cameras,
     first_frames,
     read_device_window,
 )
-from mocaprig.calib.vicon_calibration_options import MAX_RMS_PX, CalibrationOptions
+from mocaprig.calib.vicon_calibration_options import (
+    MAX_RMS_PX,
+    CalibrationOptions,
+    D415PulseTiming,
+)
 from mocaprig.calib.vicon_calibration_pooled_clock import Tie, pooled_clocks, tie_by_counters
 from mocaprig.calib.vicon_calibration_static import (
     ViconStatic,
@@ -208,6 +213,19 @@ def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     return out
 
 
+def _expected_slave_delays(
+    cams: Sequence[CalibCamera], timing: D415PulseTiming
+) -> dict[str, float]:
+    """Per slave (``sync_mode`` 2) how much later than the master's its exposure comes beyond
+    the trigger delay under ``timing`` (ns): the master's exposure when the pulse comes at its
+    readout start, else 0 (also without a master or its exposure)."""
+    master = next((c for c in cams if c.sync_mode == 1), None)
+    if master is None or master.exposure_us is None:
+        return {}
+    lag = timing.pulse_lag_ns(float(master.exposure_us) * 1e3)
+    return {c.name: lag for c in cams if c.sync_mode == 2 and lag}
+
+
 def calibrate_vicon(
     session_mcap: str | Path,
     vicon_c3d: str | Path,
@@ -315,7 +333,9 @@ def calibrate_vicon(
             got = read_device_window(rec, cams, dev_windows, firsts, end_log)
             for c in cams:
                 frames_all[c.name].extend(got[c.name])
-        davis_inputs = davis_pulse_inputs(rec, cams, opt.sync_pulse_us)
+        davis_inputs = davis_pulse_inputs(
+            rec, cams, opt.sync_pulse_us, pulse_timing=opt.pulse_timing
+        )
         sync = sync_channel_inputs(
             Path(vicon_c3d),
             rec,
@@ -344,6 +364,7 @@ def calibrate_vicon(
         for c in cams
     }
     ties: dict[str, Tie] = {}
+    expected_delays = _expected_slave_delays(cams, opt.pulse_timing)
     for _ in range(2):
         own: dict[str, ClockMapping] = {}
         for cam in cams:
@@ -360,6 +381,7 @@ def calibrate_vicon(
             shift_cost,
             {c.name: c.sync_mode for c in cams},
             ties_out=ties,
+            expected_delays_ns=expected_delays,
         )
         video = mappings
         mappings, sync_notes = sync_clocks(sync, video, ties, opt, shift_cost)
@@ -396,6 +418,13 @@ def calibrate_vicon(
             )  # fmt: skip
     notes.extend(pool_notes)
     notes.extend([sync.note] if sync.note else sync_notes)
+    timing = opt.pulse_timing
+    notes.append(
+        f"clock: D415 sync timing assumed: {timing.describe()} (--d415-pulse-at "
+        f"{timing.pulse_at}; undocumented for the D415: measure it, docs/d415-timing.md §4); it "
+        "sets how frames relate to the sync channel's edges, the DAVIS trigger pulses and the "
+        "slaves' delays"
+    )
     clocks.extend(mappings[c.name] for c in cams)
     tick()
     refused = tuple(
@@ -476,6 +505,9 @@ def calibrate_vicon(
             "vicon_claps": float(len(vicon_claps)),
             "max_rms_threshold_px": float(opt.max_rms_px),
             "forced": float(bool(refused)),
+            # The D415 sync-timing convention assumed (the statistics hold numbers only).
+            "d415_pulse_at_readout_start": float(timing.pulse_at == "readout-start"),
+            "d415_slave_trigger_delay_us": float(timing.slave_trigger_delay_us),
         },
         software_version=__version__,
         created_utc=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

@@ -19,6 +19,7 @@ from mocaprig.acquire.device_streams import RecordedDavis, davis_devices
 from mocaprig.acquire.recording import Recording
 from mocaprig.calib.calibration import ClockMapping
 from mocaprig.calib.vicon_calibration_frames import CalibCamera
+from mocaprig.calib.vicon_calibration_options import D415PulseTiming
 from mocaprig.errors import CalibrationError
 
 __all__ = ["DavisPulses", "davis_clock", "davis_pulse_inputs"]
@@ -38,13 +39,20 @@ class DavisPulses:
 
 
 def davis_pulse_inputs(
-    rec: Recording, cams: Sequence[CalibCamera], sync_pulse_us: float
+    rec: Recording,
+    cams: Sequence[CalibCamera],
+    sync_pulse_us: float,
+    *,
+    pulse_timing: D415PulseTiming | None = None,
 ) -> list[DavisPulses]:
     """The rising edges of every DAVIS's external input (DAVIS ns since its last timestamp
-    reset) and the D415 sync master (``sync_mode`` 1 in its device metadata) whose exposure
-    starts they mark, with that master's frame delay (half its exposure: a D415 stamps frames
-    mid-exposure). Rising-edge events (type 2) are used as they are; whole pulses (type 4,
-    stamped at the trailing edge) are moved back by ``sync_pulse_us``."""
+    reset) and the D415 sync master (``sync_mode`` 1 in its device metadata) whose pulses they
+    are, with that master's frame delay (stamp minus pulse: a D415 stamps frames mid-exposure,
+    so +half its exposure when the pulse marks the exposure start, −half when it marks the
+    readout start, as ``pulse_timing`` says; default :class:`D415PulseTiming`, the exposure
+    start). Rising-edge events (type 2) are used as they are; whole pulses (type 4, stamped at
+    the trailing edge) are moved back by ``sync_pulse_us``."""
+    timing = D415PulseTiming() if pulse_timing is None else pulse_timing
 
     master, delay, why = None, 0, ""
     for cam in cams:
@@ -53,7 +61,7 @@ def davis_pulse_inputs(
             if cam.exposure_us is None:
                 master, why = None, f"{cam.name}'s metadata has no options.exposure_us"
             else:
-                delay = round(float(cam.exposure_us) * 500.0)
+                delay = timing.master_frame_delay_ns(float(cam.exposure_us) * 1e3)
             break
     else:
         why = "no calibrated D415 is the sync master (device metadata sync_mode = 1)"

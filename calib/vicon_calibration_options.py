@@ -2,23 +2,126 @@
 
 :class:`CalibrationOptions` is read by every step of the calibration (reading, registration, the
 clocks, the refusal), so it sits below them all; :data:`MAX_RMS_PX` is the default refusal
-threshold.
+threshold. :class:`D415PulseTiming` is the D415 sync-timing convention the calibration assumes
+(where the master's pulse falls, a slave's trigger-to-exposure delay): undocumented for the
+D415, so a parameter with both published readings available (docs/d415-timing.md §3).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Final, Literal
+from types import MappingProxyType
+from typing import Final, Literal, get_args
 
 from mocaprig.errors import ValidationError
 from mocaprig.validation import check_positive
 
-__all__ = ["MAX_RMS_PX", "CalibrationOptions"]
+__all__ = [
+    "D415_PULSE_CONVENTIONS",
+    "MAX_RMS_PX",
+    "SLAVE_TRIGGER_DELAY_US",
+    "CalibrationOptions",
+    "D415PulseAt",
+    "D415PulseTiming",
+]
 
 #: Default refusal threshold on a camera's reprojection RMS (px). The simulated rig gives
 #: 0.2–0.4 px; a wrong registration gives several px.
 MAX_RMS_PX: Final = 1.5
+
+#: Where the D415 master's pin-5 sync pulse falls: at its exposure start, or at its readout
+#: start (= the end of its exposure).
+D415PulseAt = Literal["exposure-start", "readout-start"]
+
+#: The conventions, in the order the CLI lists them (the first is the default).
+D415_PULSE_CONVENTIONS: Final[tuple[D415PulseAt, ...]] = get_args(D415PulseAt)
+
+#: A slave's trigger-to-exposure delay (µs) each published convention comes with:
+#: ``exposure-start``, the mock's long-standing assumption (100 µs); ``readout-start``, Intel's
+#: answers for the D4xx family (0.77 ms; librealsense #9220 measured 0.79–0.88 ms on a D435).
+SLAVE_TRIGGER_DELAY_US: Final[Mapping[D415PulseAt, float]] = MappingProxyType(
+    {"exposure-start": 100.0, "readout-start": 770.0}
+)
+
+
+@dataclass(frozen=True, slots=True)
+class D415PulseTiming:
+    """The D415 sync timing the calibration assumes, resolved from :class:`CalibrationOptions`.
+
+    A D415 stamps a frame (``sensor_timestamp``) at the middle of its exposure. Where that
+    stamp falls relative to the master's sync pulse, which the Vicon sync channel and the
+    DAVIS trigger input record, is not documented for the D415 (docs/d415-timing.md §3):
+
+    * ``"exposure-start"``: the pulse marks the master's exposure start, so the master's stamp
+      is the pulse + exposure/2;
+    * ``"readout-start"``: the pulse marks its readout start, i.e. the end of its exposure, so
+      its stamp is the pulse − exposure/2.
+
+    A slave starts exposing ``slave_trigger_delay_us`` after the edge whatever the convention,
+    so its stamp is the pulse + delay + its exposure/2.
+
+    Attributes:
+        pulse_at: Where the master's pulse falls.
+        slave_trigger_delay_us: A slave's exposure start after the edge (µs).
+    """
+
+    pulse_at: D415PulseAt = "exposure-start"
+    slave_trigger_delay_us: float = SLAVE_TRIGGER_DELAY_US["exposure-start"]
+
+    def __post_init__(self) -> None:
+        if self.pulse_at not in D415_PULSE_CONVENTIONS:
+            msg = (
+                f"D415 pulse timing: pulse_at must be one of {list(D415_PULSE_CONVENTIONS)}, got "
+                f"{self.pulse_at!r}; see docs/d415-timing.md §4 to measure which one a rig has"
+            )
+            raise ValidationError(msg)
+        if not math.isfinite(self.slave_trigger_delay_us):
+            msg = (
+                "D415 pulse timing: slave_trigger_delay_us must be a finite number of µs, got "
+                f"{self.slave_trigger_delay_us!r}"
+            )
+            raise ValidationError(msg)
+
+    @classmethod
+    def preset(cls, pulse_at: D415PulseAt) -> D415PulseTiming:
+        """A published convention with its slave delay (:data:`SLAVE_TRIGGER_DELAY_US`)."""
+        if pulse_at not in SLAVE_TRIGGER_DELAY_US:
+            return cls(pulse_at)  # refused, with the message, by __post_init__
+        return cls(pulse_at, SLAVE_TRIGGER_DELAY_US[pulse_at])
+
+    def master_frame_delay_ns(self, exposure_ns: float) -> int:
+        """The master's frame stamp minus its pulse (ns): +exposure/2 (``exposure-start``) or
+        −exposure/2 (``readout-start``)."""
+        half = round(0.5 * exposure_ns)
+        return half if self.pulse_at == "exposure-start" else -half
+
+    def pulse_lag_ns(self, master_exposure_ns: float) -> float:
+        """The master's pulse after its exposure start (ns): 0, or its exposure when the pulse
+        marks its readout start. A slave's exposure starts the trigger delay after the pulse,
+        so this is also how much later than the master's a slave exposes beyond that delay
+        (and half their exposure difference)."""
+        return float(master_exposure_ns) if self.pulse_at == "readout-start" else 0.0
+
+    def slave_delay_ns(self, master_exposure_ns: float, exposure_ns: float) -> float:
+        """A slave's frame stamp minus the master's stamp of the same pulse (ns): the trigger
+        delay plus half the exposure difference, plus the master's whole exposure when the
+        pulse comes at its readout start (the master exposes before the edge, the slave
+        after it)."""
+        delay = self.slave_trigger_delay_us * 1e3 + 0.5 * (exposure_ns - master_exposure_ns)
+        if self.pulse_at == "readout-start":
+            delay += master_exposure_ns
+        return delay
+
+    def describe(self) -> str:
+        """One line for the notes, e.g. ``pulse at the master's exposure start, slave exposure
+        100 µs after the edge``."""
+        where = "exposure start" if self.pulse_at == "exposure-start" else "readout start"
+        return (
+            f"pulse at the D415 master's {where}, slave exposure "
+            f"{self.slave_trigger_delay_us:g} µs after the edge"
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,15 +151,25 @@ class CalibrationOptions:
         unit: Length unit of the Vicon file when it does not say (``"mm"``, ``"cm"``, ``"m"``).
         sync_pulse_us: Width of the D415 master's sync pulse (µs): a DAVIS reporting whole
             pulses (special type 4, stamped at the trailing edge) is moved back by it to the
-            rising edge (the exposure start); rising-edge events (type 2) need no correction.
+            rising edge (the pulse); rising-edge events (type 2) need no correction.
         sync_channel: Label of the Vicon analog channel carrying the D415 master's pulses (the
             sync box's toggle output: one edge per pulse, docs/wiring.md §7); matched exactly,
             else ignoring case. None: do not look for one (video clocks only).
         sync_latency_us: The wiring's delay from the master's pulse to the channel's edge (µs):
             the sync box's interrupt latency, ≈ 2 µs (assumed; measure it with a scope).
+        d415_pulse_at: Where the D415 master's sync pulse falls, used wherever a frame's
+            ``sensor_timestamp`` (mid-exposure) is related to a pulse (the sync channel's
+            edges, the DAVIS trigger input, the slaves' delays): ``"exposure-start"`` (the
+            default, the mock's long-standing assumption: stamp = pulse + exposure/2) or
+            ``"readout-start"`` (Intel's answers for the D4xx family: the pulse at the end of
+            the exposure, stamp = pulse − exposure/2). Undocumented for the D415: measure it
+            (LED test, docs/d415-timing.md §4); a wrong one moves the D415 and DAVIS clocks by
+            about one exposure or makes the pulses unpairable.
         slave_trigger_delay_us: A D415 slave's exposure start after the pulse (µs), for slaves
-            mapped through the sync channel. Undocumented by Intel (realsense-d415.md §2.2);
-            100 µs is the mock's assumption: measure it (LED flash test) for a real rig.
+            mapped through the sync channel. None (the default): the convention's published
+            value (:data:`SLAVE_TRIGGER_DELAY_US`: 100 µs with ``exposure-start``, 770 µs with
+            ``readout-start``). Undocumented for the D415 (realsense-d415.md §2.2): measure
+            it (LED flash test) for a real rig.
     """
 
     head_window_s: float = 2.2
@@ -76,15 +189,31 @@ class CalibrationOptions:
     sync_pulse_us: float = 50.0
     sync_channel: str | None = "D415_SYNC"
     sync_latency_us: float = 2.0
-    slave_trigger_delay_us: float = 100.0
+    d415_pulse_at: D415PulseAt = "exposure-start"
+    slave_trigger_delay_us: float | None = None
 
     def __post_init__(self) -> None:
         check_positive(self.head_window_s, name="head_window_s")
         check_positive(self.sync_pulse_us, name="sync_pulse_us")
         for name in ("sync_latency_us", "slave_trigger_delay_us"):
-            if not math.isfinite(getattr(self, name)):
-                msg = f"{name} must be a finite number of µs, got {getattr(self, name)!r}"
+            value = getattr(self, name)
+            if value is not None and not math.isfinite(value):
+                msg = f"{name} must be a finite number of µs, got {value!r}"
                 raise ValidationError(msg)
+        if self.d415_pulse_at not in D415_PULSE_CONVENTIONS:
+            msg = (
+                f"d415_pulse_at must be one of {list(D415_PULSE_CONVENTIONS)}, got "
+                f"{self.d415_pulse_at!r}; measure which one the rig has (docs/d415-timing.md §4)"
+            )
+            raise ValidationError(msg)
         check_positive(self.static_tolerance_m, name="static_tolerance_m")
         check_positive(self.static_tolerance_px, name="static_tolerance_px")
         check_positive(self.max_rms_px, name="max_rms_px")
+
+    @property
+    def pulse_timing(self) -> D415PulseTiming:
+        """The D415 pulse timing assumed: ``d415_pulse_at`` with ``slave_trigger_delay_us``,
+        or that convention's published slave delay when it is None."""
+        if self.slave_trigger_delay_us is None:
+            return D415PulseTiming.preset(self.d415_pulse_at)
+        return D415PulseTiming(self.d415_pulse_at, float(self.slave_trigger_delay_us))

@@ -107,6 +107,7 @@ def pooled_clocks(
     score: Callable[[str, ClockMapping], float] | None = None,
     sync_modes: Mapping[str, int | None] | None = None,
     ties_out: dict[str, Tie] | None = None,
+    expected_delays_ns: Mapping[str, float] | None = None,
 ) -> tuple[dict[str, ClockMapping], list[str]]:
     """One Vicon clock line through the stretch offsets of every hardware-synchronised camera.
 
@@ -137,6 +138,12 @@ def pooled_clocks(
             alone cannot always tell it.
         ties_out: Filled with each pooled camera's tie to the pivot (the pivot's own is the
             identity), for the sync-channel clocks (:func:`sync_clocks`).
+        expected_delays_ns: Per camera the part of its exposure's delay after the master's
+            that the D415 pulse convention predicts beyond the trigger delay (ns; missing: 0):
+            the master's exposure for a slave when the pulse comes at the master's readout
+            start (:meth:`~mocaprig.calib.vicon_calibration_options.D415PulseTiming.pulse_lag_ns`).
+            Each camera's constant is bounded and shrunk about it (relative to the pivot's)
+            instead of about 0.
 
     Returns:
         ``(mapping per camera, notes)``.
@@ -206,12 +213,14 @@ def pooled_clocks(
         ties_out.update(rel)
     if len(rel) < 2:
         return out, notes
+    expected = expected_delays_ns or {}
+    centres = [float(expected.get(n, 0.0)) - float(expected.get(pivot, 0.0)) for n in rel]
     t_all, d_all, s_all, cam_all = [], [], [], []
     for c, (n, tie) in enumerate(rel.items()):
         t_w, d_w, s_w = fits[n]
         tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
         t_all.append(tp_w)
-        d_all.append(t_w + d_w - tp_w)
+        d_all.append(t_w + d_w - tp_w - centres[c] if centres[c] else t_w + d_w - tp_w)
         s_all.append(s_w)
         cam_all.append(np.full(len(t_w), c))
     pooled, delays, delay_sig = _shared_line_fit(
@@ -222,6 +231,8 @@ def pooled_clocks(
         np.concatenate(cam_all),
         len(rel),
     )
+    if any(centres):
+        delays = [d + e for d, e in zip(delays, centres, strict=True)]
     method = f"reprojection, pooled over {len(rel)} synchronised cameras"
     for c, (n, tie) in enumerate(rel.items()):
         m = through_tie(n, tie, pooled, delay_ns=delays[c], method=method)
@@ -240,7 +251,9 @@ def pooled_clocks(
 #: it gets none (0 ± the pooled line's σ).
 _MIN_DELAY_STRETCHES: Final = 3
 #: Largest per-camera constant (trigger delay) of the pooled clock, and the prior it is shrunk
-#: with (ns). A D415 slave exposes a fixed delay after the pulse (the mock: 100 µs).
+#: with (ns), about the delay the pulse convention predicts beyond the trigger delay
+#: (``expected_delays_ns`` of :func:`pooled_clocks`). A D415 slave exposes a fixed delay after
+#: the pulse (0.1 ms or 0.77 ms in the published conventions).
 _MAX_DELAY_NS: Final = 1_000_000.0
 _DELAY_PRIOR_NS: Final = 300_000.0
 

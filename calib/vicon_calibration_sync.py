@@ -93,10 +93,12 @@ def sync_channel_inputs(
     """The sync channel's edges (:func:`sync_channel_edges`), the master's frame stamps (those
     of the frames read for the calibration: the windows spread over the session pin the line
     to well under a µs and 0.1 ppm, and reading every ``frame_info`` would decompress the
-    whole recording), its frame delay (half its exposure: pulse at the exposure start, stamp
-    mid-exposure) and, per other camera, its exposure's delay after the master's
-    (``slave_trigger_delay_us`` plus half the exposure difference). A missing or unusable
-    channel gives ``edges=None`` and a note saying why."""
+    whole recording), its frame delay (stamp minus pulse, ±half its exposure as
+    ``opt.pulse_timing`` says: the stamp is mid-exposure, the pulse at the exposure start or
+    at the readout start) and, per other camera, its exposure's delay after the master's
+    (``D415PulseTiming.slave_delay_ns``: the trigger delay plus half the exposure difference,
+    plus the master's exposure when the pulse ends it). A missing or unusable channel gives
+    ``edges=None`` and a note saying why."""
     fallback = "the D415 clocks come from the video"
     edges, note = sync_channel_edges(vicon_path, opt)
     if edges is None:
@@ -121,17 +123,17 @@ def sync_channel_inputs(
             None,
             note=f"clock: {master.name}'s metadata has no options.exposure_us; {fallback}",
         )
+    timing = opt.pulse_timing
     delays = {}
     for c in cams:
         if c is master:
             continue
-        exp_c = exposure_ns(c)
-        delays[c.name] = opt.slave_trigger_delay_us * 1e3 + 0.5 * ((exp_c or exp_m) - exp_m)
+        delays[c.name] = timing.slave_delay_ns(exp_m, exposure_ns(c) or exp_m)
     return SyncInputs(
         edges,
         master.name,
         np.unique(np.asarray(frames_ns[master.name], dtype=np.int64)),
-        round(0.5 * exp_m),
+        timing.master_frame_delay_ns(exp_m),
         delays,
     )
 

@@ -28,7 +28,7 @@ import numpy.typing as npt
 from mocaprig.drivers_mock.clapperboard import Clapperboard, make_clapperboard
 from mocaprig.drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
 from mocaprig.drivers_mock.noise import NoiseSettings
-from mocaprig.drivers_mock.rig import PinholeCamera, Rig, default_rig
+from mocaprig.drivers_mock.rig import D415Timing, PinholeCamera, PulseAt, Rig, default_rig
 from mocaprig.errors import ValidationError
 from mocaprig.validation import check_positive
 
@@ -44,6 +44,7 @@ __all__ = [
     "ScenarioRecipe",
     "WorldSample",
     "build_scenario",
+    "d415_timing_preset",
     "stream_rng",
 ]
 
@@ -300,6 +301,29 @@ def _bvh_motion(
     return Motion(motion.name, motion.rate_hz, poses)
 
 
+def d415_timing_preset(timing: D415Timing | PulseAt) -> D415Timing:
+    """A :class:`~mocaprig.drivers_mock.rig.D415Timing` as given, or the preset named by its
+    ``pulse_at`` (``"exposure-start"`` or ``"readout-start"``).
+
+    Raises:
+        ValidationError: another name.
+    """
+    if isinstance(timing, D415Timing):
+        return timing
+    presets: dict[str, Callable[[], D415Timing]] = {
+        "exposure-start": D415Timing.exposure_start,
+        "readout-start": D415Timing.readout_start,
+    }
+    make = presets.get(timing)
+    if make is not None:
+        return make()
+    msg = (
+        f"d415_timing must be a D415Timing or one of 'exposure-start', 'readout-start', got "
+        f"{timing!r}"
+    )
+    raise ValidationError(msg)
+
+
 def build_scenario(
     name: str = "default",
     *,
@@ -308,6 +332,7 @@ def build_scenario(
     motion_path: str | Path | None = None,
     noise: NoiseSettings | None = None,
     progress: Callable[[int, int], None] | None = None,
+    d415_timing: D415Timing | PulseAt | None = None,
 ) -> Scenario:
     """Build a seeded scenario.
 
@@ -319,9 +344,15 @@ def build_scenario(
             (no static start; the clip holds its last pose if it is shorter than the session).
         noise: Noise settings (default :class:`NoiseSettings`).
         progress: Optional ``(done, total)`` callback of the BVH retargeting (the slow part).
+        d415_timing: The rig's undocumented D415 sync timing (``Rig.d415_timing``, which the
+            mock D415s, hence the DAVIS trigger input, the sync box and the Vicon sync channel,
+            follow): a :class:`~mocaprig.drivers_mock.rig.D415Timing`, or a preset's name,
+            ``"exposure-start"`` (:meth:`D415Timing.exposure_start`, the default) or
+            ``"readout-start"`` (:meth:`D415Timing.readout_start`). It draws nothing: the
+            same seed gives the same actor, rig poses and clocks under either timing.
 
     Raises:
-        ValidationError: unknown scenario, bad seed or length.
+        ValidationError: unknown scenario, bad seed or length, unknown timing preset.
         ProcessingError: the BVH file cannot be read or retargeted.
     """
     from mocaprig.process.body.markers import MarkerSet
@@ -368,6 +399,8 @@ def build_scenario(
         scenario_name = name
 
     rig = default_rig(stream_rng(seed, "rig"))
+    if d415_timing is not None:
+        rig = replace(rig, d415_timing=d415_timing_preset(d415_timing))
     clock_rng = stream_rng(seed, "clocks")
     clocks: dict[str, DeviceClock] = {"davis": davis_clock(clock_rng)}
     for d in rig.d415:

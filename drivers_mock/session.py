@@ -38,6 +38,7 @@ from typing import Any, Final, Literal, get_args
 import numpy as np
 
 from mocaprig.drivers_mock.noise import NoiseSettings
+from mocaprig.drivers_mock.rig import D415Timing, PulseAt
 from mocaprig.drivers_mock.scenario import Scenario, build_scenario
 from mocaprig.drivers_mock.truth import write_truth, write_vicon_truth
 from mocaprig.drivers_mock.vicon import (
@@ -190,6 +191,7 @@ def simulate_session(
     devices: Sequence[Device] = (),
     cameras: int | None = None,
     davis_dvs: bool = False,
+    d415_timing: D415Timing | PulseAt | None = None,
 ) -> SimulationResult:
     """Build a scenario and write its ground truth and simulated Vicon capture.
 
@@ -210,10 +212,18 @@ def simulate_session(
             no recording.
         cameras: D415 count (default: every rig D415, 4).
         davis_dvs: Run the DAVIS DVS module (~10x the DAVIS simulation cost).
+        d415_timing: The D415s' undocumented sync timing (``Rig.d415_timing``): a
+            :class:`~mocaprig.drivers_mock.rig.D415Timing` or a preset's name,
+            ``"exposure-start"`` (the default) or ``"readout-start"`` (Intel's answers for the
+            D4xx family: pulse at the master's readout start, slaves 0.77 ms after it); see
+            :func:`~mocaprig.drivers_mock.scenario.build_scenario`. The mock D415s, the DAVIS
+            trigger input, the sync box and the Vicon sync channel all follow it, and
+            ``truth/scenario.json`` records it under ``rig.d415_timing``; the clocks of the
+            truth are the same under either timing.
 
     Raises:
         RecordingError: the folder is not empty (without ``overwrite``) or cannot be written.
-        ValidationError: bad scenario name, seed or length.
+        ValidationError: bad scenario name, seed, length or D415 timing.
         ProcessingError: the BVH motion cannot be read or retargeted.
     """
     t0 = time.monotonic()
@@ -235,6 +245,7 @@ def simulate_session(
         motion_path=motion_path,
         noise=noise,
         progress=stage("retarget") if motion_path is not None else None,
+        d415_timing=d415_timing,
     )
     truth_dir = write_truth(
         world, out, rate_hz=truth_rate_hz, overwrite=True, progress=stage("truth")
