@@ -15,10 +15,15 @@ Configurations (:data:`LITE_CONFIGS`), each timed in rounds that interleave them
 is shared: a load change then hits all of them alike):
 
 * ``live``: :func:`mocaprig.process.democap.live.live_predictor`: the rotation ensemble of
-  ``LIVE_ROTATIONS`` (2) turns, one network pass per thread, in the default pipeline;
+  ``LIVE_ROTATIONS`` (2) turns as two passes at once (``workers=2``: the second on the
+  predictor's own thread, kept across calls), in the default pipeline;
+* ``live-1thr``: the 2 turns in one batched network pass on the calling thread (``workers=1``:
+  the least CPU per set, the better choice when the second core is busy);
+* ``live-before``: the 2-turn ensemble as it ran before the turns were batched
+  (:class:`PerTurnPredictor`: one pass per turn, on a thread pool made per call): the
+  "before" figure, timed in the same run;
 * ``offline``: ``DemocapPredictor()`` as shipped for offline use (``DEFAULT_ROTATIONS``, 3
-  turns, one thread);
-* ``offline-2thr``: the same with its passes on 2 threads (``workers=2``);
+  turns, one batched pass);
 * ``single``: the paper's single shot (``rotations=1``).
 
 For each:
@@ -27,7 +32,7 @@ For each:
   and the throughput of that loop;
 * **pipelined throughput** (:meth:`LivePipeline.stream` over all the pre-rendered sets: the
   measurement of set k + 1 overlaps the network of set k): sets per second of wall time;
-* **paced at 30 Hz** (``live``, ``offline`` and ``single``; the sets released on a 30 Hz
+* **paced at 30 Hz** (``live``, ``live-before`` and ``single``; the sets released on a 30 Hz
   clock, the D415 rate): the latency from a set's release to its joints, and whether it keeps up.
 
 ``fps`` in the last line's JSON is the end-to-end throughput, 4 IR + depth frames -> world
@@ -35,7 +40,8 @@ joints, of ``live`` (the live predictor, the pipeline's default ``workers``
 :data:`~mocaprig.process.democap.live.DEFAULT_WORKERS`) through the pipelined stream, median over
 rounds, on the machine it runs on, as loaded as it is. Each pass also reports the CPU cores
 it kept busy on average (process CPU time / wall time): on a shared machine, whether the
-second core was there to use at all.
+second core was there to use at all; and the process CPU time per set of the streamed pass
+(the work, which the load changes much less than the rate).
 
 ``lite`` is the committed checkpoint; ``paper`` has random weights (its speed does not depend
 on them) and is timed on a few sets, as the live predictor and single shot. The MPJPE of the
@@ -57,6 +63,7 @@ import os
 import platform
 import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -78,6 +85,7 @@ from mocaprig.process.democap.live import (
     LivePipeline,
     LiveResult,
     cameras_from_calibration,
+    live_predictor,
 )
 from mocaprig.process.democap.model import build_network
 
@@ -172,6 +180,11 @@ class Round:
     stream_fps: float
     stream_cores: float
 
+    @property
+    def stream_cpu_ms(self) -> float:
+        """Process CPU time per set in the streamed pass (ms): the work, whatever the load."""
+        return 1e3 * self.stream_cores / self.stream_fps
+
 
 def _timed(fn: Callable[[], list[LiveResult]]) -> tuple[list[LiveResult], float, float]:
     c0, t0 = time.process_time(), time.perf_counter()
@@ -259,14 +272,38 @@ def _table(rows: dict[str, dict[str, float]]) -> list[str]:
     return lines
 
 
-#: The configurations timed: label -> (predictor keyword arguments, pipeline workers). The
-#: first is :func:`~process.democap.live.live_predictor` (``LIVE_ROTATIONS`` turns, one pass
-#: per thread) in the default pipeline: the ``fps`` figure.
-LITE_CONFIGS: dict[str, tuple[dict[str, Any], int]] = {
-    "live": ({"rotations": LIVE_ROTATIONS, "workers": LIVE_ROTATIONS}, DEFAULT_WORKERS),
-    "offline": ({}, DEFAULT_WORKERS),
-    "offline-2thr": ({"workers": 2}, DEFAULT_WORKERS),
-    "single": ({"rotations": 1}, DEFAULT_WORKERS),
+class PerTurnPredictor(DemocapPredictor):
+    """The network stage as it was before the turns were batched (the "before" of
+    docs/benchmarks.md, kept here to time it in the same run): one network pass per turn
+    (front/back batch of 2), the passes on a thread pool made for each call."""
+
+    def _network(
+        self, fronts: torch.Tensor, backs: torch.Tensor
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        views = list(zip(fronts, backs, strict=True))
+        if self.workers > 1 and len(views) > 1:
+            with ThreadPoolExecutor(min(self.workers, len(views))) as pool:
+                outs = list(pool.map(lambda v: self._pass(*v), views))
+        else:
+            outs = [self._pass(*v) for v in views]
+        return np.stack([o[0] for o in outs]), np.stack([o[1] for o in outs])
+
+
+#: The configurations timed: label -> (predictor from the checkpoint, pipeline workers). The
+#: first is :func:`~process.democap.live.live_predictor` in the default pipeline: the ``fps``
+#: figure.
+LITE_CONFIGS: dict[str, tuple[Callable[[Checkpoint], DemocapPredictor], int]] = {
+    "live": (live_predictor, DEFAULT_WORKERS),
+    "live-1thr": (
+        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, workers=1),
+        DEFAULT_WORKERS,
+    ),
+    "live-before": (
+        lambda c: PerTurnPredictor(c, rotations=LIVE_ROTATIONS, workers=LIVE_ROTATIONS),
+        DEFAULT_WORKERS,
+    ),
+    "offline": (DemocapPredictor, DEFAULT_WORKERS),
+    "single": (lambda c: DemocapPredictor(c, rotations=1), DEFAULT_WORKERS),
 }
 PAPER_CONFIGS: dict[str, dict[str, Any]] = {
     "paper": {"rotations": LIVE_ROTATIONS, "workers": LIVE_ROTATIONS},
@@ -299,8 +336,8 @@ def main() -> int:
 
     ckpt = load_checkpoint(DEFAULT_CHECKPOINT)
     configs: dict[str, tuple[DemocapPredictor, int]] = {}
-    for name, (kw, w) in LITE_CONFIGS.items():
-        configs[name] = (DemocapPredictor(ckpt, **kw), w)
+    for name, (make, w) in LITE_CONFIGS.items():
+        configs[name] = (make(ckpt), w)
     seq: dict[str, list[LiveResult]] = {c: [] for c in configs}
     rounds: dict[str, list[Round]] = {c: [] for c in configs}
     for _ in range(args.rounds):
@@ -310,7 +347,7 @@ def main() -> int:
             rounds[name].append(rnd)
     live = {
         c: run_paced(configs[c][0], cal, sets, workers=configs[c][1])
-        for c in ("live", "offline", "single")
+        for c in ("live", "live-before", "single")
     }
     accuracy = {c: mpjpe(seq[c][: len(sets)], truth) for c in configs}
 
@@ -339,7 +376,8 @@ def main() -> int:
         print(
             f"lite {c} ({_describe(pred, w)}): sequential {med(c, 'seq_fps'):.1f} fps "
             f"({med(c, 'seq_cores'):.2f} cores busy), pipelined {med(c, 'stream_fps'):.1f} fps "
-            f"({med(c, 'stream_cores'):.2f} cores busy), MPJPE {accuracy[c]['mpjpe_mm']} mm; "
+            f"({med(c, 'stream_cores'):.2f} cores busy, {med(c, 'stream_cpu_ms'):.1f} CPU ms "
+            f"per set), MPJPE {accuracy[c]['mpjpe_mm']} mm; "
             "rounds (seq / pipelined): "
             + ", ".join(f"{r.seq_fps:.1f} / {r.stream_fps:.1f}" for r in rounds[c])
         )
@@ -357,7 +395,7 @@ def main() -> int:
     result: dict[str, Any] = {
         "benchmark": "democap_infer",
         "what": "4 D415 IR+depth frames (848x480) -> world joints; lite, live predictor "
-        f"({LIVE_ROTATIONS} turns on {LIVE_ROTATIONS} threads), pipelined stream",
+        f"({_describe(*configs['live'])}), pipelined stream",
         "machine": platform.machine(),
         "cpu_count": os.cpu_count(),
         "load_avg_start_end": [round(load_start[0], 2), round(load_end[0], 2)],
@@ -374,6 +412,7 @@ def main() -> int:
                 "sequential_cores_busy": med(c, "seq_cores"),
                 "pipelined_fps": med(c, "stream_fps"),
                 "pipelined_cores_busy": med(c, "stream_cores"),
+                "pipelined_cpu_ms_per_set": med(c, "stream_cpu_ms"),
                 "rounds_fps_sequential_pipelined": [
                     [round(r.seq_fps, 2), round(r.stream_fps, 2)] for r in rounds[c]
                 ],

@@ -164,10 +164,12 @@ examples:
       the same on fast strikes; one JSON object with every figure
 
 The demo runs the whole toolkit as far as it exists: simulate, record, check the recording,
-Vicon I/O, calibration, DeMoCap on held-out takes, the DeMoCap replay of the recording
+Vicon I/O, calibration, DeMoCap on held-out simulated takes, the DeMoCap replay of the recording
 (demo-out/results.mcap, .c3d, .csv; every 3rd rig instant) and 1 s of `democap live` on the
 mock rig of the same world (demo-out/live.mcap); report.json lists the stages that later
-versions add (EventCap) as pending.
+versions add (EventCap) as pending. Every DeMoCap figure is labelled with its protocol: all
+are in-distribution (simulated actions, bodies and D415 model like training's); the figure on
+real human motion is `mocaprig democap eval --protocol unseen-real` (docs/democap.md).
 """
 
 
@@ -267,7 +269,8 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  calibration: {c.get('error', 'not run')}"
         ),
         (
-            f"  DeMoCap ({d['config']}, held-out takes, 4 cameras, {d['rotations']}-turn "
+            f"  DeMoCap [{d['protocol']}] ({d['config']}, held-out simulated takes, 4 cameras, "
+            f"{d['rotations']}-turn "
             f"ensemble): MPJPE {d['mpjpe_mm']:.1f} mm, MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 "
             f"{100 * d['pck50']:.1f} % (single shot: {d['single_shot_mpjpe_mm']:.1f} mm, "
             f"{100 * d['single_shot_pck50']:.1f} %)"
@@ -275,7 +278,8 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  DeMoCap: {d.get('error', 'not run')}"
         ),
         (
-            f"  DeMoCap replay of session.mcap ({rp['cameras']} D415s, 1 instant in "
+            f"  DeMoCap replay [{rp['protocol']}] of session.mcap ({rp['cameras']} D415s, "
+            "1 instant in "
             f"{rp['every']}): {rp['instants']} instants, MPJPE {rp['mpjpe_mm']:.1f} mm, MPMPE "
             f"{rp['mpmpe_mm']:.1f} mm vs truth, {rp['mean_points_per_instant']:.0f} points per "
             f"cloud, {rp['seconds']:.1f} s"
@@ -283,7 +287,8 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  DeMoCap replay: {rp.get('error', 'not run')}"
         ),
         (
-            f"  DeMoCap live on the mock rig ({len(lv['cameras'])} D415s, {lv['seconds']:g} s): "
+            f"  DeMoCap live [{lv['protocol']}] on the mock rig ({len(lv['cameras'])} D415s, "
+            f"{lv['seconds']:g} s): "
             f"{lv['instants']} instants, MPJPE {lv.get('mpjpe_mm', float('nan')):.1f} mm vs "
             f"truth, {lv['drops']} dropped, {lv['fps']:.1f} instants/s (the simulator renders "
             "on this CPU)"

@@ -16,6 +16,7 @@ from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.progress import ProgressBar, StatusLine
 
 __all__ = [
+    "PROTOCOL_CHOICES",
     "VARIANT_CHOICES",
     "democap_eval",
     "democap_live",
@@ -29,6 +30,8 @@ examples:
   mocaprig democap train --config lite --out lite.pt --epochs 40
   mocaprig democap train --out lite.pt --epochs 80 --resume     continue a run
   mocaprig democap eval --json                                  committed lite checkpoint
+  mocaprig democap eval --protocol unseen-real --json           the headline: real motion
+  mocaprig democap eval --protocol all --json                   every protocol, labelled
   mocaprig democap eval --cameras 2 --seed 3
   mocaprig democap eval --motion walk.bvh --json                a motion never trained on
   mocaprig democap run session.mcap --calib calib.toml --out results.mcap   replay a recording
@@ -39,6 +42,8 @@ examples:
 #: ``DemocapConfig.variant`` values (spelled out here: importing the config would import
 #: torch through the package, and ``mocaprig --help`` must stay fast).
 VARIANT_CHOICES = ("markers-to-pose", "pose", "markers+pose", "regression")
+#: ``evaluate.PROTOCOLS``, spelled out for the same reason (a test checks they agree).
+PROTOCOL_CHOICES = ("in-distribution", "unseen-real", "leave-one-activity-out", "perturbed")
 
 _TRAIN_EPILOG = """\
 Training data is simulated on the fly (marker-level D415 model, see docs/democap.md) and is
@@ -50,10 +55,17 @@ examples:
   mocaprig democap train --config lite --out lite.pt --overwrite --max-minutes 30
   mocaprig democap train --variant markers+pose --out mp.pt --epochs 4 --threads 1
   mocaprig democap train --config lite --out mine.pt --bvh walk.bvh dance.bvh --epochs 40
+  mocaprig democap train --out loao.pt --hold-out-activity dance --epochs 40
+  mocaprig democap train --out sim-only.pt --no-corpus --epochs 40
 
---bvh adds motion-capture clips to the training pool (retargeted onto --bvh-subjects bodies
-each; a third of the procedural takes are already random key poses). The checkpoint keeps the
-clips' names, and `democap eval --motion` flags a clip that was trained on.
+--corpus DIR (default: ../shared/data/motion/corpus when present; --no-corpus: none) adds the
+motion corpus's train split (process/democap/data/corpus_split.toml, split by CMU subject) to
+the pool, each clip centred on the rig and retargeted onto --corpus-subjects training bodies;
+the validation split becomes a second validation set (val_corpus_mpjpe_mm). --hold-out-activity
+A leaves activity A's clips out (a leave-one-activity-out run). --bvh adds other motion-capture
+clips (retargeted onto --bvh-subjects bodies each; a third of the procedural takes are already
+random key poses). The checkpoint keeps the clips' names, and `democap eval` flags a clip that
+was trained on.
 
 --variant picks the network of a new run: markers-to-pose (DeMoCap, the default) or one of the
 baselines of paper Table 2 (pose: joint heat maps only; markers+pose: both super-stages
@@ -62,14 +74,30 @@ its checkpoint's variant.
 """
 
 _EVAL_EPILOG = """\
-The test set uses subjects, marker placements and takes never used in training (one take per
-procedural action and subject), or a BVH motion (--motion) retargeted onto new subjects.
+--protocol picks what is held out (docs/democap.md, "Protocols"):
+  in-distribution          held-out simulated takes: new bodies and takes, but training's
+                           actions, body sampler and D415 model (the default)
+  unseen-real              the motion corpus's test split: real motion of performers never
+                           trained on (the headline); clips the checkpoint trained on are
+                           flagged and left out
+  leave-one-activity-out   per activity, its corpus clips not trained on; says whether the
+                           activity itself was trained on
+  perturbed                in-distribution takes with the D415 model's detection rate, noise,
+                           stray points and occlusion at 0.5x and 1.5x training's
+  all                      all four
+--motion FILE.bvh (a BVH retargeted onto new subjects) and --freestyle (held-out random key
+poses) replace the protocol. Every figure is given over all frames and over the frames with
+the actor inside the volume the cameras see (with that share); frames whose cloud has fewer
+than 2 points are skipped and counted. --frames is per take or clip (default per protocol:
+40, 20, 10, 8), --subjects the bodies per clip (corpus) or rounds of the actions.
 MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm. Any variant's
 checkpoint can be evaluated; a pose baseline estimates no markers, so its MPMPE, RMSPMPE and
 MPJAE are reported as n/a (null with --json).
 
 examples:
   mocaprig democap eval
+  mocaprig democap eval --protocol unseen-real --subjects 2 --json
+  mocaprig democap eval --protocol all --frames 8 --json
   mocaprig democap eval --ckpt lite.pt --cameras 4 --json
   mocaprig democap eval --all-cameras --json        4-, 3- and 2-camera figures
   mocaprig democap eval --motion ../shared/data/motion/cmu_131_02_scaled.bvh
@@ -140,6 +168,23 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         help="BVH clips added to the training pool (a resumed run needs the same ones)",
     )
     tr.add_argument("--bvh-subjects", type=int, default=4, help="bodies per BVH clip")
+    tr.add_argument(
+        "--corpus",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="motion corpus folder: its train split joins the pool "
+        "(default: ../shared/data/motion/corpus when present)",
+    )
+    tr.add_argument("--no-corpus", action="store_true", help="train without the motion corpus")
+    tr.add_argument("--corpus-subjects", type=int, default=2, help="bodies per corpus clip")
+    tr.add_argument(
+        "--hold-out-activity",
+        action="append",
+        default=[],
+        metavar="ACTIVITY",
+        help="leave this activity's corpus clips out of training (repeatable)",
+    )
     add_json_flag(tr)
     tr.set_defaults(func=democap_train)
 
@@ -151,6 +196,19 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ev.add_argument("--ckpt", default=None, help="checkpoint (default: the committed lite one)")
+    ev.add_argument(
+        "--protocol",
+        choices=(*PROTOCOL_CHOICES, "all"),
+        default="in-distribution",
+        help="what is held out (default: %(default)s; see below)",
+    )
+    ev.add_argument(
+        "--corpus",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="motion corpus folder (default: ../shared/data/motion/corpus when present)",
+    )
     ev.add_argument("--motion", default=None, metavar="FILE.bvh", help="test on this BVH motion")
     ev.add_argument(
         "--freestyle",
@@ -161,7 +219,12 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     ev.add_argument("--cameras", type=int, choices=(2, 3, 4), default=4, help="D415s used")
     ev.add_argument("--all-cameras", action="store_true", help="report 4, 3 and 2 cameras")
     ev.add_argument("--subjects", type=int, default=1, help="subjects (rounds of the actions)")
-    ev.add_argument("--frames", type=int, default=40, help="frames per take")
+    ev.add_argument(
+        "--frames", type=int, default=None, help="frames per take or clip (default per protocol)"
+    )
+    ev.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
+    )
     _add_rotations(ev)
     add_json_flag(ev)
     ev.set_defaults(func=democap_eval)
@@ -286,6 +349,7 @@ def democap_train(args: argparse.Namespace) -> int:
     if args.variant is not None:
         config = dataclasses.replace(config, variant=args.variant)
     motions = tuple(read_bvh(p) for p in args.bvh)
+    corpus, validation = _train_corpus(args)
 
     opts = TrainOptions(
         epochs=args.epochs,
@@ -297,6 +361,9 @@ def democap_train(args: argparse.Namespace) -> int:
         max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes,
         motions=motions,
         motion_subjects=args.bvh_subjects,
+        corpus=corpus,
+        corpus_subjects=args.corpus_subjects,
+        validation_motions=validation,
     )
     ckpt = train(
         Path(args.out),
@@ -314,6 +381,9 @@ def democap_train(args: argparse.Namespace) -> int:
         "epochs": ckpt.epoch,
         "loss": last.get("loss"),
         "val_mpjpe_mm": last.get("val_mpjpe_mm"),
+        "val_corpus_mpjpe_mm": last.get("val_corpus_mpjpe_mm"),
+        "corpus_clips": [c.name for c in corpus],
+        "validation_clips": [c.name for c in validation],
         "train_motions": ckpt.train_motions,
     }
     if args.json:
@@ -327,60 +397,193 @@ def democap_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _corpus_dir(arg: Path | None) -> Path | None:
+    from mocaprig.process.democap.corpus import default_corpus_dir
+
+    return arg if arg is not None else default_corpus_dir()
+
+
+def _train_corpus(args: argparse.Namespace) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
+    """The corpus train clips (minus held-out activities) and validation clips for
+    ``democap train``; none with ``--no-corpus`` or when there is no corpus folder.
+
+    Raises:
+        ValidationError: ``--corpus`` with ``--no-corpus``, an unknown activity, or a
+            missing clip.
+    """
+    from mocaprig.errors import ValidationError
+    from mocaprig.process.democap.corpus import load_split, read_corpus_clips
+
+    if args.no_corpus and args.corpus is not None:
+        msg = "pass either --corpus DIR or --no-corpus, not both"
+        raise ValidationError(msg)
+    table = load_split()
+    unknown = sorted(set(args.hold_out_activity) - set(table.activities()))
+    if unknown:
+        msg = f"unknown activities {unknown}; the split table has {', '.join(table.activities())}"
+        raise ValidationError(msg)
+    folder = None if args.no_corpus else _corpus_dir(args.corpus)
+    if folder is None:
+        if not args.no_corpus:
+            print("no motion corpus folder: training without it (--corpus DIR)", file=sys.stderr)
+        return (), ()
+    keep = [c for c in table.in_split("train") if c.activity not in args.hold_out_activity]
+    return (
+        tuple(read_corpus_clips(folder, keep)),
+        tuple(read_corpus_clips(folder, table.in_split("validation"))),
+    )
+
+
 def democap_eval(args: argparse.Namespace) -> int:
-    """Handler of ``mocaprig democap eval``; returns 0."""
+    """Handler of ``mocaprig democap eval``; returns 0.
+
+    Raises:
+        ValidationError: ``--motion`` or ``--freestyle`` with a ``--protocol`` other than the
+            default, ``--all-cameras`` with a protocol of several figures, or a corpus
+            protocol without a corpus folder.
+    """
+    from mocaprig.errors import ValidationError
     from mocaprig.process.body import read_bvh
-    from mocaprig.process.democap.evaluate import evaluate, held_out_pool
+    from mocaprig.process.democap.evaluate import (
+        PROTOCOLS,
+        ProtocolResult,
+        evaluate,
+        held_out_pool,
+        run_protocol,
+    )
     from mocaprig.process.democap.infer import DemocapPredictor
 
+    special = args.motion is not None or args.freestyle
+    if special and args.protocol != "in-distribution":
+        msg = "--motion and --freestyle replace --protocol; pass one of them"
+        raise ValidationError(msg)
+    if args.threads < 1:
+        msg = f"--threads must be >= 1, got {args.threads}"
+        raise ValidationError(msg)
+    import torch
+
+    torch.set_num_threads(args.threads)
+    protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
+    single = special or args.protocol in ("in-distribution", "unseen-real")
+    if args.all_cameras and not single:
+        msg = f"--all-cameras applies to one figure; protocol {args.protocol!r} gives several"
+        raise ValidationError(msg)
     predictor = DemocapPredictor(
         None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
     )
-    clip = None if args.motion is None else read_bvh(args.motion)
-    seen = False
-    if clip is not None and clip.name in predictor.checkpoint.train_motions:
-        seen = True
-        print(
-            f"warning: {args.motion} (clip {clip.name!r}) was in this checkpoint's training "
-            "pool; the figures are not held out",
-            file=sys.stderr,
-        )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
-    pool = held_out_pool(args.seed, motion=clip, subjects=args.subjects, freestyle=args.freestyle)
-    reports = {}
-    for k in cams:
-        rep = evaluate(
-            predictor, seed=args.seed, num_cameras=k, frames_per_take=args.frames, pool=pool
+    corpus = _corpus_dir(args.corpus)
+    seen = False
+    results: list[ProtocolResult] = []
+    by_cameras: dict[str, Any] = {}
+    if special:
+        clip = None if args.motion is None else read_bvh(args.motion)
+        if clip is not None and clip.name in predictor.checkpoint.train_motions:
+            seen = True
+            print(
+                f"warning: {args.motion} (clip {clip.name!r}) was in this checkpoint's "
+                "training pool; the figures are not held out",
+                file=sys.stderr,
+            )
+        frames = args.frames or 40
+        pool = held_out_pool(
+            args.seed, motion=clip, subjects=args.subjects, freestyle=args.freestyle
         )
-        reports[k] = rep.to_dict()
-    main = reports[cams[0]]
+        for k in cams:
+            rep = evaluate(
+                predictor, seed=args.seed, num_cameras=k, frames_per_take=frames, pool=pool
+            )
+            res = ProtocolResult(
+                "bvh-motion" if clip is not None else "freestyle",
+                "bvh-motion" if clip is not None else "freestyle",
+                f"the motion of {args.motion}, on new bodies"
+                if clip is not None
+                else "random key poses of the test stream (training draws other keys)",
+                rep,
+                trained_on=seen,
+                budget={"frames_per_take": frames, "subjects": args.subjects, "seed": args.seed},
+            )
+            results.append(res)
+            by_cameras[str(k)] = res.to_dict()
+        results = results[:1]
+    else:
+        for proto in protocols:
+            for k in cams:
+                got = run_protocol(
+                    predictor,
+                    proto,
+                    corpus_dir=corpus,
+                    seed=args.seed,
+                    num_cameras=k,
+                    subjects=args.subjects,
+                    frames=args.frames,
+                )
+                if k == cams[0]:
+                    results += got
+                by_cameras[str(k)] = got[0].to_dict()
+    for r in results:
+        if r.trained_clips:
+            print(
+                f"warning: {r.protocol} {r.label}: clip(s) {', '.join(r.trained_clips)} were "
+                "trained on; left out of the figure",
+                file=sys.stderr,
+            )
     out: dict[str, Any] = {
         "checkpoint": str(args.ckpt or "committed lite"),
         "config": predictor.checkpoint.config.name,
         "variant": predictor.checkpoint.config.variant,
+        "protocol": args.protocol if not special else results[0].protocol,
         "motion": args.motion
         or ("freestyle (held-out)" if args.freestyle else "procedural (held-out)"),
         "motion_trained_on": seen,
         "rotations": predictor.rotations,
         "seed": args.seed,
-        **main,
+        "corpus": None if corpus is None else str(corpus),
+        "trained_corpus_clips": sorted(predictor.checkpoint.train_motions),
     }
+    if len(results) == 1 and results[0].report is not None:
+        out.update(results[0].to_dict())
+    out["protocol"] = args.protocol if not special else results[0].protocol
+    out["results"] = [r.to_dict() for r in results]
     if len(cams) > 1:
-        out["by_cameras"] = {str(k): v for k, v in reports.items()}
+        out["by_cameras"] = by_cameras
     if args.json:
         emit_json(out)
         return 0
     if not predictor.predicts_markers:
         print(f"{out['variant']} baseline: no markers, so no MPMPE and no MPJAE")
-    for k, r in reports.items():
-        print(
-            f"{k} cameras: MPJPE {r['mpjpe_mm']:.1f} mm, RMSPJPE {r['rmspjpe_mm']:.1f} mm, "
-            f"MPMPE {_fmt(r['mpmpe_mm'], ' mm')}, PCK@50 {100 * r['pck50']:.1f} %, "
-            f"MPJAE {_fmt(r['mpjae_deg'], ' deg')} ({r['frames']} frames)"
-        )
-        acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
-        print(f"  per action (mm): {acts}")
+    if len(cams) > 1:
+        for k, r in by_cameras.items():
+            print(_result_line(f"{k} cameras", r))
+        return 0
+    for res in results:
+        print(_result_line(f"{cams[0]} cameras", res.to_dict()))
     return 0
+
+
+def _result_line(prefix: str, r: dict[str, Any]) -> str:
+    """One protocol figure as text."""
+    head = f"{r['protocol']}" + ("" if r["label"] == r["protocol"] else f" [{r['label']}]")
+    if "mpjpe_mm" not in r:
+        return f"{head}: no figure ({r['note']})"
+    ins = r["inside_volume"]
+    inside = (
+        "no frame inside the volume"
+        if ins["mpjpe_mm"] is None
+        else f"inside the volume ({100 * ins['share']:.0f} % of frames): MPJPE "
+        f"{ins['mpjpe_mm']:.1f} mm, PCK@50 {100 * ins['pck50']:.1f} %"
+    )
+    flag = " (trained on)" if r["trained_on"] else ""
+    first = (
+        f"{head}{flag}, {prefix}: MPJPE {r['mpjpe_mm']:.1f} mm, RMSPJPE {r['rmspjpe_mm']:.1f} mm, "
+        f"MPMPE {_fmt(r['mpmpe_mm'], ' mm')}, PCK@50 {100 * r['pck50']:.1f} %, "
+        f"MPJAE {_fmt(r['mpjae_deg'], ' deg')} ({r['frames']} frames, "
+        f"{r['skipped_frames']} skipped); {inside}"
+    )
+    lines = [first, f"  holds out: {r['holds_out']}"]
+    acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
+    lines.append(f"  per action or clip (mm): {acts}")
+    return "\n".join(lines)
 
 
 def _fmt(value: float | None, unit: str) -> str:

@@ -5,16 +5,21 @@ subject (:meth:`BodyShape.sample`, marker placement jitter σ = 1 cm), a procedu
 new take variation and, for training, a constant random offset on every joint angle (up to
 ±12°, clipped to the limits) so the poses are not limited to the six scores; a third of the
 training takes are ``freestyle`` (random key poses within the joint limits,
-:mod:`mocaprig.process.body.procedural`). The training
-and held-out pools come from different seed streams, so held-out bodies, placements and takes
-are never seen in training; a BVH clip (``--motion``) gives an action never trained on. BVH
-clips can join the training pool too (``democap train --bvh``), on bodies of their own seed
-stream; the checkpoint lists their names so an evaluation on one of them is flagged.
+:mod:`mocaprig.process.body.procedural`). The training,
+validation and held-out (test) pools come from different seed streams, so validation and test
+bodies, placements and takes are never seen in training, and the validation set that guides a
+run is never a test set; a BVH clip (``--motion``) gives an action never trained on. BVH clips
+(``democap train --bvh``) and the motion corpus's training split (``--corpus``,
+:mod:`.corpus`) join the training pool on bodies of their own seed stream; the checkpoint
+lists their names so an evaluation on one of them is flagged.
 
 A sample: one frame of one take, the actor turned to a random heading and moved up to 0.6 m
 off the centre, seen by a freshly sampled rig (:func:`simdata.sample_rig`), fused
 (:func:`simdata.merge_views`), moved to the image frame, centred on the raw centroid, rotated
 (training: ±10° / ±180° / ±10°), normalised from the raw points and rendered front and back.
+A frame whose fused cloud has fewer than 2 points (the actor out of every camera's view) gives
+no sample (:func:`simulate_sample` returns None): training draws another frame, evaluation
+skips it and counts it.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy.typing as npt
 import torch
 from scipy.spatial.transform import Rotation
 
-from mocaprig.errors import ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import (
     DOF_LIMITS_RAD,
     PROCEDURAL_MOTIONS,
@@ -48,6 +53,9 @@ from mocaprig.process.democap.geometry import (
     to_image_frame,
 )
 from mocaprig.process.democap.simdata import (
+    NOMINAL_OBSERVATION,
+    Camera,
+    ObservationModel,
     PoseFrames,
     merge_views,
     observe,
@@ -64,10 +72,11 @@ __all__ = [
     "make_sample",
     "pool_from_bvh",
     "prepare_cloud",
+    "simulate_sample",
 ]
 
 FloatArray = npt.NDArray[np.float64]
-Split = Literal["train", "test"]
+Split = Literal["train", "validation", "test"]
 
 #: The scored procedural actions, used in both pools (the static T-pose is left out: it adds
 #: nothing; ``freestyle`` has no score and is training-only).
@@ -78,9 +87,11 @@ TRAIN_ACTIONS: tuple[str, ...] = tuple(
 #: third of the takes, so the network sees poses beyond the scores.
 _TRAIN_CYCLE: tuple[str, ...] = (*TRAIN_ACTIONS, *(("freestyle",) * (len(TRAIN_ACTIONS) // 2)))
 RATE_HZ = 30.0
-_SPLIT_KEY = {"train": 0, "test": 1}
+_SPLIT_KEY = {"train": 0, "test": 1, "validation": 4}
 #: Seed streams of BVH takes (the held-out one predates the training one).
-_BVH_KEY = {"train": 3, "test": 2}
+_BVH_KEY = {"train": 3, "test": 2, "validation": 5}
+#: make_batch gives up after this many frames in a row without a usable cloud.
+_MAX_REDRAWS = 200
 
 
 def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> Motion:
@@ -92,7 +103,7 @@ def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> 
 
 def _check_split_and_count(split: str, **count: int) -> None:
     if split not in _SPLIT_KEY:
-        msg = f"split must be 'train' or 'test', got {split!r}"
+        msg = f"split must be 'train', 'validation' or 'test', got {split!r}"
         raise ValidationError(msg)
     for name, n in count.items():
         if n < 1:
@@ -110,7 +121,8 @@ def make_pool(
 ) -> list[PoseFrames]:
     """``takes`` takes from the ``split`` seed stream, cycling through :data:`TRAIN_ACTIONS`
     (``"train"``: then three ``freestyle`` takes of random key poses per cycle) or through
-    ``actions`` (procedural motion names) when given.
+    ``actions`` (procedural motion names) when given. ``"validation"`` and ``"test"`` take
+    the scored actions without the training pose offsets, from streams of their own.
 
     Raises:
         ValidationError: ``takes`` < 1, an unknown split or an unknown or empty action list.
@@ -133,26 +145,48 @@ def make_pool(
     return pool
 
 
+def _centred(motion: Motion) -> Motion:
+    poses = np.array(motion.poses)
+    poses[:, 3:5] -= poses[:, 3:5].mean(axis=0)
+    return Motion(motion.name, motion.rate_hz, poses)
+
+
 def pool_from_bvh(
-    clip: BvhClip, seed: int, *, subjects: int = 1, split: Split = "test"
+    clip: BvhClip,
+    seed: int,
+    *,
+    subjects: int = 1,
+    split: Split = "test",
+    centre: bool = False,
+    first_body: int = 0,
 ) -> list[PoseFrames]:
     """Takes of a BVH clip on ``subjects`` new bodies: the clip is thinned to about 30 Hz and
     retargeted onto each body (:func:`mocaprig.process.body.retarget_bvh`). ``"test"``: held-out
-    bodies (e.g. for a clip never trained on); ``"train"``: bodies of another seed stream, for
-    clips added to the training pool.
+    bodies (e.g. for a clip never trained on); ``"train"`` / ``"validation"``: bodies of seed
+    streams of their own, for clips in the training pool / the validation set. ``centre``
+    moves the clip on the floor so that the mean of its root's floor positions is the rig's
+    centre (the corpus clips: a capture is made where the cameras look; without it a clip keeps
+    the position it was recorded at). The bodies are numbers ``first_body`` ...
+    ``first_body + subjects - 1`` of the split's stream (callers with many clips give each clip
+    bodies of its own).
 
     Raises:
-        ValidationError: ``subjects`` < 1 or an unknown split.
+        ValidationError: ``subjects`` < 1, a negative ``first_body`` or an unknown split.
     """
     _check_split_and_count(split, subjects=subjects)
+    if first_body < 0:
+        msg = f"first_body must be >= 0, got {first_body}"
+        raise ValidationError(msg)
     step = max(1, round(1.0 / (clip.frame_time_s * RATE_HZ)))
     thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
     out = []
-    for k in range(subjects):
+    for k in range(first_body, first_body + subjects):
         rng = np.random.default_rng([seed, _BVH_KEY[split], k])
         shape = BodyShape.sample(rng)
         markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
         motion = retarget_bvh(thin, shape)
+        if centre:
+            motion = _centred(motion)
         out.append(pose_frames(motion.with_name(clip.name), shape, markers))
     return out
 
@@ -170,6 +204,7 @@ class Sample:
         markers_m, joints_m: truth (53, 3), (19, 3), world, m.
         markers_n, joints_n: truth, normalised front frame.
         action: the take's action.
+        cameras: the sampled rig that saw it.
     """
 
     front: npt.NDArray[np.float32]
@@ -183,6 +218,7 @@ class Sample:
     markers_n: FloatArray
     joints_n: FloatArray
     action: str
+    cameras: tuple[Camera, ...] = ()
 
 
 def prepare_cloud(
@@ -225,7 +261,7 @@ def _place(frames: PoseFrames, index: int, yaw: float, shift: FloatArray) -> Pos
     )
 
 
-def make_sample(
+def simulate_sample(
     frames: PoseFrames,
     index: int,
     rng: np.random.Generator,
@@ -233,8 +269,12 @@ def make_sample(
     num_cameras: int = 4,
     augment: bool = True,
     size_px: int = 160,
-) -> Sample:
-    """Simulate, fuse, normalise and render frame ``index`` of a take (see module doc)."""
+    observation: ObservationModel = NOMINAL_OBSERVATION,
+) -> Sample | None:
+    """Simulate, fuse, normalise and render frame ``index`` of a take (see module doc); None
+    when the fused cloud has fewer than 2 points (nothing to normalise: the actor is out of
+    every camera's view or the capture box). ``observation`` scales the D415 model (stress
+    tests; the default is the model training uses)."""
     placed = _place(
         frames,
         index,
@@ -242,10 +282,10 @@ def make_sample(
         np.append(rng.uniform(-0.6, 0.6, 2), 0.0),
     )
     cams = sample_rig(rng, num_cameras=num_cameras)
-    views, _ = observe(placed, 0, cams, rng)
+    views, _ = observe(placed, 0, cams, rng, model=observation)
     raw = merge_views(views)
-    if raw.shape[0] < 2:  # nothing seen: fall back to the noisy truth so the sample is usable
-        raw = placed.markers_m[0] + rng.normal(0.0, 0.01, placed.markers_m[0].shape)
+    if raw.shape[0] < 2:
+        return None
     rot = random_rotation(rng) if augment else np.eye(3)
     front, back, norm, centre = prepare_cloud(raw, rot, size_px=size_px)
 
@@ -264,7 +304,42 @@ def make_sample(
         markers_n=to_n(placed.markers_m[0]),
         joints_n=to_n(placed.joints_m[0]),
         action=frames.action,
+        cameras=tuple(cams),
     )
+
+
+def make_sample(
+    frames: PoseFrames,
+    index: int,
+    rng: np.random.Generator,
+    *,
+    num_cameras: int = 4,
+    augment: bool = True,
+    size_px: int = 160,
+    observation: ObservationModel = NOMINAL_OBSERVATION,
+) -> Sample:
+    """:func:`simulate_sample`, for callers that need a sample.
+
+    Raises:
+        ProcessingError: the fused cloud has fewer than 2 points (no fallback: a cloud that
+            cannot be normalised is not a sample).
+    """
+    s = simulate_sample(
+        frames,
+        index,
+        rng,
+        num_cameras=num_cameras,
+        augment=augment,
+        size_px=size_px,
+        observation=observation,
+    )
+    if s is None:
+        msg = (
+            f"frame {index} of take {frames.action!r}: the simulated rig saw fewer than 2 "
+            "points (the actor is out of view); pick another frame"
+        )
+        raise ProcessingError(msg)
+    return s
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,11 +355,28 @@ class Batch:
 def make_batch(
     pool: list[PoseFrames], rng: np.random.Generator, size: int, *, size_px: int = 160
 ) -> Batch:
-    """``size`` random samples from random takes and frames of ``pool``."""
-    samples = []
-    for _ in range(size):
+    """``size`` random samples from random takes and frames of ``pool``; a frame without a
+    usable cloud (:func:`simulate_sample`) is replaced by another random draw.
+
+    Raises:
+        ProcessingError: :data:`_MAX_REDRAWS` draws in a row gave no usable cloud.
+    """
+    samples: list[Sample] = []
+    misses = 0
+    while len(samples) < size:
         take = pool[int(rng.integers(len(pool)))]
-        samples.append(make_sample(take, int(rng.integers(take.num_frames)), rng, size_px=size_px))
+        s = simulate_sample(take, int(rng.integers(take.num_frames)), rng, size_px=size_px)
+        if s is None:
+            misses += 1
+            if misses >= _MAX_REDRAWS:
+                msg = (
+                    f"{misses} training frames in a row were out of the rig's view; "
+                    "the pool's takes leave the capture volume"
+                )
+                raise ProcessingError(msg)
+            continue
+        misses = 0
+        samples.append(s)
     return Batch(
         front=torch.from_numpy(np.stack([s.front for s in samples]))[:, None],
         back=torch.from_numpy(np.stack([s.back for s in samples]))[:, None],

@@ -1,9 +1,29 @@
-"""Evaluation on held-out simulated sessions with known truth.
+"""Evaluation with known truth, and the evaluation protocols (docs/democap.md, "Protocols").
 
-The test set is built from the ``test`` seed stream (:func:`dataset.make_pool`): subjects,
-marker placements and takes never used in training, one take per procedural action, or a
-given motion (e.g. a retargeted BVH clip never trained on) on new subjects. Each frame is
-seen by a freshly sampled rig of ``num_cameras`` D415s, without rotation augmentation.
+:func:`evaluate` measures a predictor on a set of takes: by default the ``test`` seed stream
+(:func:`dataset.make_pool`): subjects, marker placements and takes never used in training, one
+take per procedural action, or a given motion (e.g. a retargeted BVH clip never trained on) on
+new subjects. Each frame is seen by a freshly sampled rig of ``num_cameras`` D415s, without
+rotation augmentation. A frame whose fused cloud has fewer than 2 points is skipped and
+counted (``skipped_frames``). Every figure is given over all evaluated frames and over the
+frames in which the actor stands inside the volume the cameras see (the pelvis in the image of
+every camera of that frame's rig, 0.3–6 m: :func:`simdata.in_frustum`), with that share: a
+walking clip that leaves the rig's view measures the rig, not the network.
+
+The protocols (:data:`PROTOCOLS`, :func:`run_protocol`), each labelled with what it holds out:
+
+* ``in-distribution``: held-out simulated takes of the six procedural actions: new bodies and
+  takes, but the same actions, body sampler and observation model as training;
+* ``unseen-real``: the motion corpus's test split (:mod:`.corpus`): real captured motion of
+  performers none of whose clips is in the training or validation split (the headline);
+  clips the checkpoint was trained on are flagged and left out;
+* ``leave-one-activity-out``: the corpus clips of each activity (train and test splits; the
+  validation split is for model selection and never reported), without the clips the
+  checkpoint was trained on; each activity says whether any clip of it was trained on;
+* ``perturbed``: the ``in-distribution`` takes seen through the D415 model with its detection
+  rate, noise, stray points and occlusion each pushed to 0.5× and 1.5× the values training
+  uses (:class:`simdata.ObservationModel`), one knob at a time, then all four together the
+  harder way and the easier way.
 
 Metrics (:mod:`mocaprig.process.metrics`): joints over the paper's 17 evaluation joints (the two toe
 joints left out, democap-method.md §5), markers over all 53. MPJAE uses segment orientations
@@ -16,31 +36,63 @@ are None (JSON null).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from typing import Any
+import logging
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-from mocaprig.errors import ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, MARKER_NAMES, BvhClip
 from mocaprig.process.democap.config import Variant
-from mocaprig.process.democap.dataset import make_pool, make_sample, pool_from_bvh
+from mocaprig.process.democap.corpus import (
+    CorpusClip,
+    CorpusSplit,
+    corpus_pool,
+    load_split,
+    read_corpus_clips,
+)
+from mocaprig.process.democap.dataset import make_pool, pool_from_bvh, simulate_sample
 from mocaprig.process.democap.infer import DemocapPredictor
-from mocaprig.process.democap.simdata import PoseFrames
+from mocaprig.process.democap.simdata import (
+    NOMINAL_OBSERVATION,
+    PERTURBATION_KNOBS,
+    ObservationModel,
+    PoseFrames,
+    in_frustum,
+)
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
 
 __all__ = [
     "EVAL_JOINTS",
+    "PERTURBATION_SCALES",
+    "PROTOCOLS",
     "SEGMENTS",
     "EvalReport",
+    "Protocol",
+    "ProtocolResult",
     "evaluate",
     "held_out_pool",
+    "leave_one_activity_out",
+    "perturbed",
+    "run_protocol",
     "segment_quaternions",
+    "unseen_real",
 ]
 
+_log = logging.getLogger(__name__)
+
 FloatArray = npt.NDArray[np.float64]
+
+Protocol = Literal["in-distribution", "unseen-real", "leave-one-activity-out", "perturbed"]
+#: The evaluation protocols (module doc).
+PROTOCOLS: tuple[Protocol, ...] = get_args(Protocol)
+#: The ``perturbed`` protocol's scales on each observation-model knob (±50 %).
+PERTURBATION_SCALES: tuple[float, ...] = (0.5, 1.5)
 
 #: Indices (into DEMOCAP_JOINTS) of the 17 joints the paper evaluates (no toes).
 EVAL_JOINTS: tuple[int, ...] = tuple(
@@ -98,7 +150,16 @@ def segment_quaternions(joints: npt.ArrayLike, markers: npt.ArrayLike) -> FloatA
 @dataclass(frozen=True, slots=True)
 class EvalReport:
     """Figures of one evaluation run (see :class:`process.metrics.PoseMetrics`); ``variant`` is
-    the evaluated network's (``"pose"``: no marker figures, no MPJAE)."""
+    the evaluated network's (``"pose"``: no marker figures, no MPJAE).
+
+    Attributes:
+        metrics: over every evaluated frame.
+        inside_metrics: over the frames with the actor inside the volume the cameras see
+            (module doc); None when there is none.
+        inside_share: that share of the evaluated frames.
+        frames_requested: frames asked for; ``skipped_frames`` of them had fewer than 2 points
+            and are in no figure.
+    """
 
     metrics: PoseMetrics
     num_cameras: int
@@ -106,16 +167,37 @@ class EvalReport:
     points_per_frame: float
     markers_seen: float
     variant: Variant = "markers-to-pose"
+    inside_metrics: PoseMetrics | None = None
+    inside_share: float = 1.0
+    frames_requested: int = 0
+    skipped_frames: int = 0
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict; per-joint errors keyed by joint name."""
+        """JSON-ready dict: the all-frames figures at the top (per-joint errors keyed by joint
+        name), the inside-the-volume ones under ``inside_volume``."""
         d = asdict(self.metrics)
         d["per_joint_mm"] = dict(zip(self.joint_names, d["per_joint_mm"], strict=True))
         d["variant"] = self.variant
         d["num_cameras"] = self.num_cameras
         d["points_per_frame"] = self.points_per_frame
         d["markers_seen"] = self.markers_seen
+        d["frames_requested"] = self.frames_requested
+        d["skipped_frames"] = self.skipped_frames
+        d["inside_volume"] = _summary(self.inside_metrics) | {"share": self.inside_share}
         return d
+
+
+def _summary(m: PoseMetrics | None) -> dict[str, Any]:
+    if m is None:
+        return {"frames": 0, "mpjpe_mm": None, "mpmpe_mm": None, "pck50": None}
+    return {
+        "frames": m.frames,
+        "mpjpe_mm": m.mpjpe_mm,
+        "mpmpe_mm": m.mpmpe_mm,
+        "pck50": m.pck50,
+        "mpjae_deg": m.mpjae_deg,
+        "per_action_mm": dict(m.per_action_mm),
+    }
 
 
 def held_out_pool(
@@ -139,6 +221,26 @@ def held_out_pool(
     return pool_from_bvh(motion, seed, subjects=subjects)
 
 
+def _metrics(
+    predicts_markers: bool,
+    pred_j: FloatArray,
+    true_j: FloatArray,
+    pred_m: FloatArray,
+    true_m: FloatArray,
+    actions: list[str],
+) -> PoseMetrics:
+    keep = list(EVAL_JOINTS)
+    return pose_metrics(
+        pred_j[:, keep],
+        true_j[:, keep],
+        pred_markers_mm=pred_m if predicts_markers else None,
+        true_markers_mm=true_m if predicts_markers else None,
+        actions=actions,
+        q_pred=segment_quaternions(pred_j, pred_m) if predicts_markers else None,
+        q_true=segment_quaternions(true_j, true_m) if predicts_markers else None,
+    )
+
+
 def evaluate(
     predictor: DemocapPredictor,
     *,
@@ -149,6 +251,7 @@ def evaluate(
     frames_per_take: int = 40,
     batch: int = 16,
     pool: list[PoseFrames] | None = None,
+    observation: ObservationModel = NOMINAL_OBSERVATION,
 ) -> EvalReport:
     """Run ``predictor`` on a held-out simulated test set and measure it.
 
@@ -166,9 +269,11 @@ def evaluate(
         frames_per_take: frames evenly spaced over each take.
         batch: frames per network batch.
         pool: takes to use instead of building them (for callers that reuse one test set).
+        observation: the D415 model's scales (the ``perturbed`` protocol; default: training's).
 
     Raises:
         ValidationError: a non-positive ``frames_per_take`` or ``subjects``.
+        ProcessingError: no frame gave a cloud of 2 points or more.
     """
     if frames_per_take < 1 or subjects < 1:
         msg = "frames_per_take and subjects must be >= 1"
@@ -176,17 +281,37 @@ def evaluate(
     takes = pool if pool is not None else held_out_pool(seed, motion=motion, subjects=subjects)
     rng = np.random.default_rng([seed, 7, num_cameras])
     size = predictor.size_px
-    clouds, tm, tj, actions, seen = [], [], [], [], []
+    clouds, tm, tj, actions, seen, inside = [], [], [], [], [], []
+    requested = 0
     for take in takes:
         idx = np.linspace(0, take.num_frames - 1, min(frames_per_take, take.num_frames))
         for i in np.round(idx).astype(int):
-            s = make_sample(take, int(i), rng, num_cameras=num_cameras, augment=False, size_px=size)
+            requested += 1
+            s = simulate_sample(
+                take,
+                int(i),
+                rng,
+                num_cameras=num_cameras,
+                augment=False,
+                size_px=size,
+                observation=observation,
+            )
+            if s is None:  # fewer than 2 points: no cloud to measure, counted
+                continue
             clouds.append(s.raw_m)
             tm.append(s.markers_m)
             tj.append(s.joints_m)
             actions.append(take.action)
             d = np.linalg.norm(s.raw_m[:, None, :] - s.markers_m[None], axis=-1)
             seen.append(float(np.mean(d.min(axis=0) < 0.03)))
+            inside.append(bool(in_frustum(s.joints_m[:1], list(s.cameras)).all()))
+    if not clouds:
+        msg = f"none of the {requested} frames gave a cloud of 2 points or more"
+        raise ProcessingError(msg)
+    if requested > len(clouds):
+        _log.info(
+            "%d of %d frames skipped: fewer than 2 points", requested - len(clouds), requested
+        )
     pm, pj = [], []
     for k in range(0, len(clouds), batch):
         for p in predictor.predict_many(clouds[k : k + batch]):
@@ -194,22 +319,336 @@ def evaluate(
             pj.append(p.joints_m)
     pred_m, pred_j = np.array(pm) * 1000.0, np.array(pj) * 1000.0
     true_m, true_j = np.array(tm) * 1000.0, np.array(tj) * 1000.0
-    keep = list(EVAL_JOINTS)
     markers = predictor.predicts_markers  # "pose": no markers, so no segment frames either
-    met = pose_metrics(
-        pred_j[:, keep],
-        true_j[:, keep],
-        pred_markers_mm=pred_m if markers else None,
-        true_markers_mm=true_m if markers else None,
-        actions=actions,
-        q_pred=segment_quaternions(pred_j, pred_m) if markers else None,
-        q_true=segment_quaternions(true_j, true_m) if markers else None,
-    )
+    met = _metrics(markers, pred_j, true_j, pred_m, true_m, actions)
+    ins = np.array(inside)
+    met_in = None
+    if ins.any():
+        met_in = _metrics(
+            markers,
+            pred_j[ins],
+            true_j[ins],
+            pred_m[ins],
+            true_m[ins],
+            [a for a, k in zip(actions, inside, strict=True) if k],
+        )
     return EvalReport(
         metrics=met,
         num_cameras=num_cameras,
-        joint_names=tuple(DEMOCAP_JOINTS[k] for k in keep),
+        joint_names=tuple(DEMOCAP_JOINTS[k] for k in EVAL_JOINTS),
         points_per_frame=float(np.mean([len(c) for c in clouds])),
         markers_seen=float(np.mean(seen)),
         variant=predictor.checkpoint.config.variant,
+        inside_metrics=met_in,
+        inside_share=float(ins.mean()),
+        frames_requested=requested,
+        skipped_frames=requested - len(clouds),
+    )
+
+
+# ------------------------------------------------------------------------------- protocols
+
+
+@dataclass(frozen=True, slots=True)
+class ProtocolResult:
+    """One labelled figure of a protocol.
+
+    Attributes:
+        protocol: the protocol (:data:`PROTOCOLS`), or ``"bvh-motion"`` / ``"freestyle"``
+            for ``eval --motion`` / ``--freestyle``.
+        label: this figure within it (an activity, a perturbation, or the protocol again).
+        holds_out: what the figure holds out from training, in words.
+        report: the figures (None: nothing was left to evaluate, ``note`` says why).
+        clips: corpus clips evaluated.
+        trained_clips: clips of this set the checkpoint was trained on: flagged and left out.
+        trained_on: whether the figure's data was (partly) trained on (``leave-one-activity-
+            out``: some clip of the activity was in training).
+        budget: frames per clip or take, bodies per clip, seed.
+        note: anything the reader must know.
+    """
+
+    protocol: str
+    label: str
+    holds_out: str
+    report: EvalReport | None
+    clips: tuple[str, ...] = ()
+    trained_clips: tuple[str, ...] = ()
+    trained_on: bool = False
+    budget: dict[str, int] = field(default_factory=dict)
+    note: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict: the labels, then the report's figures (:meth:`EvalReport.to_dict`)."""
+        d: dict[str, Any] = {
+            "protocol": self.protocol,
+            "label": self.label,
+            "holds_out": self.holds_out,
+            "clips": list(self.clips),
+            "trained_clips": list(self.trained_clips),
+            "trained_on": self.trained_on,
+            "budget": dict(self.budget),
+            "note": self.note,
+        }
+        if self.report is not None:
+            d.update(self.report.to_dict())
+        return d
+
+
+_HOLDS_OUT = {
+    "in-distribution": (
+        "bodies, marker placements and takes (test seed stream); the actions, body sampler "
+        "and observation model are training's"
+    ),
+    "unseen-real": (
+        "real captured motion of performers whose clips are in no training or validation "
+        "split (the corpus test split, retargeted onto new bodies)"
+    ),
+    "perturbed": (
+        "the observation model: in-distribution takes seen with a D415 model pushed away "
+        "from training's"
+    ),
+}
+
+
+def _budget(frames: int, subjects: int, seed: int) -> dict[str, int]:
+    return {"frames_per_take": frames, "subjects": subjects, "seed": seed}
+
+
+def unseen_real(
+    predictor: DemocapPredictor,
+    corpus_dir: Path,
+    *,
+    split: CorpusSplit | None = None,
+    seed: int = 0,
+    num_cameras: int = 4,
+    subjects: int = 1,
+    frames_per_clip: int = 20,
+) -> ProtocolResult:
+    """The ``unseen-real`` protocol: the corpus test split on ``subjects`` new bodies per clip,
+    ``frames_per_clip`` frames each, without the clips the checkpoint was trained on (flagged
+    in ``trained_clips``).
+
+    Raises:
+        ValidationError: the corpus folder or one of its test clips is missing.
+    """
+    table = split or load_split()
+    trained = set(predictor.checkpoint.train_motions)
+    clips = table.in_split("test")
+    flagged = tuple(c.name for c in clips if c.name in trained)
+    use = [c for c in clips if c.name not in trained]
+    budget = _budget(frames_per_clip, subjects, seed)
+    if not use:
+        note = "every test clip was trained on: no held-out figure"
+        return ProtocolResult(
+            "unseen-real",
+            "unseen-real",
+            _HOLDS_OUT["unseen-real"],
+            None,
+            trained_clips=flagged,
+            trained_on=True,
+            budget=budget,
+            note=note,
+        )
+    pool = corpus_pool(read_corpus_clips(corpus_dir, use), seed, split="test", subjects=subjects)
+    rep = evaluate(
+        predictor, seed=seed, num_cameras=num_cameras, frames_per_take=frames_per_clip, pool=pool
+    )
+    note = ""
+    if flagged:
+        note = f"left out, trained on: {', '.join(flagged)}"
+    return ProtocolResult(
+        "unseen-real",
+        "unseen-real",
+        _HOLDS_OUT["unseen-real"],
+        rep,
+        clips=tuple(c.name for c in use),
+        trained_clips=flagged,
+        budget=budget,
+        note=note,
+    )
+
+
+def leave_one_activity_out(
+    predictor: DemocapPredictor,
+    corpus_dir: Path,
+    *,
+    split: CorpusSplit | None = None,
+    seed: int = 0,
+    num_cameras: int = 4,
+    subjects: int = 1,
+    frames_per_clip: int = 10,
+    activities: Sequence[str] | None = None,
+) -> list[ProtocolResult]:
+    """The ``leave-one-activity-out`` protocol: per activity of the split table, its clips of
+    the train and test splits that the checkpoint was not trained on (the validation split is
+    never reported). ``trained_on`` is True when any corpus clip of that activity was trained
+    on: the figure then holds out the clips, not the activity (train with ``democap train
+    --hold-out-activity A`` for a true leave-one-activity-out run).
+
+    Raises:
+        ValidationError: the corpus folder or a clip is missing, or an unknown activity.
+    """
+    table = split or load_split()
+    acts = tuple(activities) if activities is not None else table.activities()
+    unknown = [a for a in acts if a not in table.activities()]
+    if unknown:
+        msg = f"unknown activities {unknown}; the split table has {', '.join(table.activities())}"
+        raise ValidationError(msg)
+    trained = set(predictor.checkpoint.train_motions)
+    trained_acts = {c.activity for c in table.clips if c.name in trained}
+    budget = _budget(frames_per_clip, subjects, seed)
+    out = []
+    for act in acts:
+        clips = [c for c in table.clips if c.activity == act and c.split != "validation"]
+        flagged = tuple(c.name for c in clips if c.name in trained)
+        use: list[CorpusClip] = [c for c in clips if c.name not in trained]
+        seen = act in trained_acts
+        holds = (
+            f"the clips of {act!r} not trained on; other clips of the activity were"
+            if seen
+            else f"the activity {act!r}: no clip of it was trained on"
+        )
+        if not use:
+            out.append(
+                ProtocolResult(
+                    "leave-one-activity-out",
+                    act,
+                    holds,
+                    None,
+                    trained_clips=flagged,
+                    trained_on=seen,
+                    budget=budget,
+                    note="every clip of the activity was trained on",
+                )
+            )
+            continue
+        pool = corpus_pool(
+            read_corpus_clips(corpus_dir, use), seed, split="test", subjects=subjects
+        )
+        rep = evaluate(
+            predictor,
+            seed=seed,
+            num_cameras=num_cameras,
+            frames_per_take=frames_per_clip,
+            pool=pool,
+        )
+        out.append(
+            ProtocolResult(
+                "leave-one-activity-out",
+                act,
+                holds,
+                rep,
+                clips=tuple(c.name for c in use),
+                trained_clips=flagged,
+                trained_on=seen,
+                budget=budget,
+            )
+        )
+    return out
+
+
+def perturbed(
+    predictor: DemocapPredictor,
+    *,
+    seed: int = 0,
+    num_cameras: int = 4,
+    subjects: int = 1,
+    frames_per_take: int = 8,
+    scales: Sequence[float] = PERTURBATION_SCALES,
+) -> list[ProtocolResult]:
+    """The ``perturbed`` protocol: the ``in-distribution`` takes of ``seed`` through the D415
+    model with each knob (:data:`simdata.PERTURBATION_KNOBS`) at each of ``scales``, one knob
+    at a time, then all knobs together the harder way (``"all harder"``: detection at the
+    smallest scale, noise, strays and occlusion at the largest) and the easier way."""
+    pool = held_out_pool(seed, subjects=subjects)
+    budget = _budget(frames_per_take, subjects, seed)
+    runs: list[tuple[str, ObservationModel]] = [
+        (f"{knob} x{f:g}", ObservationModel(**{knob: f}))
+        for knob in PERTURBATION_KNOBS
+        for f in scales
+    ]
+    # all knobs at once, each pushed the harder way, then each the easier way (fewer
+    # detections is harder; more noise, strays and occlusion are)
+    lo, hi = min(scales), max(scales)
+    runs.append(("all harder", ObservationModel(detection=lo, noise=hi, strays=hi, occlusion=hi)))
+    runs.append(("all easier", ObservationModel(detection=hi, noise=lo, strays=lo, occlusion=lo)))
+    out = []
+    for label, model in runs:
+        rep = evaluate(
+            predictor,
+            seed=seed,
+            num_cameras=num_cameras,
+            frames_per_take=frames_per_take,
+            pool=pool,
+            observation=model,
+        )
+        out.append(ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget))
+    return out
+
+
+def run_protocol(
+    predictor: DemocapPredictor,
+    protocol: Protocol,
+    *,
+    corpus_dir: Path | None = None,
+    seed: int = 0,
+    num_cameras: int = 4,
+    subjects: int = 1,
+    frames: int | None = None,
+) -> list[ProtocolResult]:
+    """One protocol's labelled figures. ``frames`` per take or clip (default: 40 for
+    ``in-distribution``, 20 for ``unseen-real``, 10 for ``leave-one-activity-out``, 8 per
+    perturbation).
+
+    Raises:
+        ValidationError: an unknown protocol, or a corpus protocol without ``corpus_dir``.
+    """
+    if protocol not in PROTOCOLS:
+        msg = f"unknown protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}"
+        raise ValidationError(msg)
+    if protocol == "in-distribution":
+        n = frames or 40
+        pool = held_out_pool(seed, subjects=subjects)
+        rep = evaluate(predictor, seed=seed, num_cameras=num_cameras, frames_per_take=n, pool=pool)
+        return [
+            ProtocolResult(
+                protocol,
+                protocol,
+                _HOLDS_OUT[protocol],
+                rep,
+                budget=_budget(n, subjects, seed),
+            )
+        ]
+    if protocol == "perturbed":
+        return perturbed(
+            predictor,
+            seed=seed,
+            num_cameras=num_cameras,
+            subjects=subjects,
+            frames_per_take=frames or 8,
+        )
+    if corpus_dir is None:
+        msg = (
+            f"protocol {protocol!r} needs the motion corpus (../shared/data/motion/corpus); "
+            "pass its folder"
+        )
+        raise ValidationError(msg)
+    if protocol == "unseen-real":
+        return [
+            unseen_real(
+                predictor,
+                corpus_dir,
+                seed=seed,
+                num_cameras=num_cameras,
+                subjects=subjects,
+                frames_per_clip=frames or 20,
+            )
+        ]
+    return leave_one_activity_out(
+        predictor,
+        corpus_dir,
+        seed=seed,
+        num_cameras=num_cameras,
+        subjects=subjects,
+        frames_per_clip=frames or 10,
     )

@@ -17,13 +17,20 @@ much of them (docs/democap.md, "Rotation ensemble"), at K times the network cost
 convolution's batch norm folded into its weights, in channels-last memory layout: the same
 function (outputs within float32 rounding), about a quarter less time on a CPU. The
 checkpoint's own model is left as it is (training and resuming use it).
+
+**Batched turns** (``workers=1``, the default): the front/back views of every turn (and every
+cloud) go through the network as one batch, ``2·K·B`` views: one pass instead of K, which on a
+CPU costs about 15 % less than K passes of 2 views (fewer per-operation overheads for the
+small ``lite`` network; the estimates are the same, bit for bit on the machine here).
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+import threading
 import time
+import weakref
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -114,15 +121,17 @@ def ensemble_rotations(k: int) -> list[FloatArray]:
 
 def _inference_copy(net: DemocapModel) -> DemocapModel:
     """A copy of ``net`` (eval mode) with each Conv2d -> BatchNorm2d pair of a Sequential
-    folded into one convolution, in channels-last layout."""
+    folded into one convolution (the batch norm removed), in channels-last layout."""
     out = copy.deepcopy(net).eval()
     for mod in out.modules():
         if isinstance(mod, nn.Sequential):
-            for i in range(len(mod) - 1):
+            i = 0
+            while i < len(mod) - 1:
                 conv, bn = mod[i], mod[i + 1]
                 if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
                     mod[i] = fuse_conv_bn_eval(conv, bn)
-                    mod[i + 1] = nn.Identity()
+                    del mod[i + 1]  # no Identity left behind: one module call less
+                i += 1
     out.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # in place
     return out
 
@@ -136,8 +145,12 @@ class DemocapPredictor:
             (the fastest: live use at a high frame rate).
         combine: how the K estimates are combined per coordinate.
         optimise: run the folded, channels-last inference copy of the network (module doc).
-        workers: threads running the K network passes at once (torch releases the GIL in its
-            kernels; each pass uses torch's own thread setting, which the caller owns).
+        workers: how many network passes the K turns are split into, run at once: 1 (the
+            default) puts the front/back views of all turns in one batch on the calling
+            thread (the least work); ``W`` > 1 makes ``min(W, K)`` batches of consecutive
+            turns, the first on the calling thread and the others on threads the predictor
+            keeps (made on first use). Each pass uses torch's own thread setting, which the
+            caller owns. The estimates do not depend on it (the same to float rounding).
 
     Raises:
         ProcessingError: the checkpoint is missing or does not match (see
@@ -175,6 +188,8 @@ class DemocapPredictor:
         self.rotations = len(self._turns)
         self.combine: Combine = combine
         self.workers = int(workers)
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
         #: whether the network estimates the markers (not the ``"pose"`` baseline)
         self.predicts_markers = ckpt.config.predicts_markers
         #: seconds spent per stage by the last :meth:`predict_many` call
@@ -189,6 +204,7 @@ class DemocapPredictor:
         return self.predict_many([raw_m])[0]
 
     def _pass(self, front: torch.Tensor, back: torch.Tensor) -> tuple[FloatArray, FloatArray]:
+        """One network pass: front/back views (N, 1, S, S) -> fused markers and joints."""
         if self._channels_last:
             front = front.contiguous(memory_format=torch.channels_last)
             back = back.contiguous(memory_format=torch.channels_last)
@@ -196,8 +212,37 @@ class DemocapPredictor:
             m, j = decode(self._run_net, front, back)
         return m.double().numpy(), j.double().numpy()
 
+    def _network(self, fronts: torch.Tensor, backs: torch.Tensor) -> tuple[FloatArray, FloatArray]:
+        """The network stage: views (K, B, 1, S, S) of the K turns -> fused markers
+        (K, B, 53, 3) and joints (K, B, 19, 3), normalised. The turns are split into
+        ``min(workers, K)`` groups of consecutive turns, each group one batched pass; the
+        first runs on the calling thread, the others on the predictor's own threads."""
+        k, b = fronts.shape[:2]
+        groups = np.array_split(np.arange(k), min(self.workers, k))
+
+        def run(g: npt.NDArray[np.intp]) -> tuple[FloatArray, FloatArray]:
+            lo, hi = int(g[0]), int(g[-1]) + 1
+            return self._pass(fronts[lo:hi].flatten(0, 1), backs[lo:hi].flatten(0, 1))
+
+        futures = [self._executor().submit(run, g) for g in groups[1:]]
+        outs = [run(groups[0])] + [f.result() for f in futures]
+        m = np.concatenate([o[0] for o in outs]).reshape(k, b, -1, 3)
+        j = np.concatenate([o[1] for o in outs]).reshape(k, b, -1, 3)
+        return m, j
+
+    def _executor(self) -> ThreadPoolExecutor:
+        """The predictor's threads for the groups of turns beyond the first (made once, on
+        first use; shut down when the predictor is collected)."""
+        with self._pool_lock:
+            if self._pool is None:
+                pool = ThreadPoolExecutor(self.workers - 1, thread_name_prefix="democap-turns")
+                weakref.finalize(self, pool.shutdown, wait=False)
+                self._pool = pool
+            return self._pool
+
     def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
-        """Several clouds in one network batch per ensemble turn (module doc).
+        """Several clouds, all turns of the ensemble in one network batch per worker (module
+        doc): the batch holds 2 · B views per turn.
 
         Raises:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
@@ -210,36 +255,29 @@ class DemocapPredictor:
         ]
         if not points:
             return []
-        views: list[tuple[torch.Tensor, torch.Tensor]] = []
+        fronts, backs = [], []
         boxes: list[list[tuple[Normalisation, FloatArray]]] = []
         for rot in self._turns:
-            fronts, backs, box = [], [], []
+            box = []
             for p in points:
                 f, b, norm, centre = prepare_cloud(p, rot, size_px=self.size_px)
                 fronts.append(f)
                 backs.append(b)
                 box.append((norm, centre))
-            views.append(
-                (
-                    torch.from_numpy(np.stack(fronts))[:, None],
-                    torch.from_numpy(np.stack(backs))[:, None],
-                )
-            )
             boxes.append(box)
+        k, n, s = len(self._turns), len(points), self.size_px
+        front_t = torch.from_numpy(np.stack(fronts)).reshape(k, n, 1, s, s)
+        back_t = torch.from_numpy(np.stack(backs)).reshape(k, n, 1, s, s)
         t1 = time.perf_counter()
-        if self.workers > 1 and len(views) > 1:
-            with ThreadPoolExecutor(min(self.workers, len(views))) as pool:
-                outs = list(pool.map(lambda v: self._pass(*v), views))
-        else:
-            outs = [self._pass(*v) for v in views]
+        m, j = self._network(front_t, back_t)
         t2 = time.perf_counter()
         # (K, B, 53 | 19, 3) estimates in the world frame, each turned back
-        mk = np.empty((len(views), len(points), self.net.num_markers, 3))
-        jt = np.empty((len(views), len(points), self.net.num_joints, 3))
-        for k, ((m, j), rot, box) in enumerate(zip(outs, self._turns, boxes, strict=True)):
+        mk = np.empty((k, n, self.net.num_markers, 3))
+        jt = np.empty((k, n, self.net.num_joints, 3))
+        for t, (rot, box) in enumerate(zip(self._turns, boxes, strict=True)):
             for i, (norm, centre) in enumerate(box):
-                mk[k, i] = to_world_frame(norm.invert(m[i]) @ rot + centre)
-                jt[k, i] = to_world_frame(norm.invert(j[i]) @ rot + centre)
+                mk[t, i] = to_world_frame(norm.invert(m[t, i]) @ rot + centre)
+                jt[t, i] = to_world_frame(norm.invert(j[t, i]) @ rot + centre)
         reduce = np.median if self.combine == "median" else np.mean
         markers, joints = reduce(mk, axis=0), reduce(jt, axis=0)
         out = [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(len(points))]

@@ -75,8 +75,12 @@ from mocaprig.process.body import (
 from mocaprig.validation import check_shape
 
 __all__ = [
+    "NOMINAL_OBSERVATION",
+    "PERTURBATION_KNOBS",
     "Camera",
+    "ObservationModel",
     "PoseFrames",
+    "in_frustum",
     "merge_views",
     "observe",
     "pose_frames",
@@ -183,6 +187,57 @@ _KNOTS = np.array(DEPTH_BIAS_KNOTS_M, dtype=np.float64)
 _DOT_LIFT_M = 0.002
 
 
+#: The knobs of :class:`ObservationModel` that the ``perturbed`` evaluation protocol moves.
+PERTURBATION_KNOBS: tuple[str, ...] = ("detection", "noise", "strays", "occlusion")
+
+
+@dataclass(frozen=True, slots=True)
+class ObservationModel:
+    """Scales on the measured observation model, for stress tests (1.0 everywhere: the model
+    training uses, :data:`NOMINAL_OBSERVATION`).
+
+    Attributes:
+        detection: scales every marker's detection probability (the occlusion logistic times
+            :data:`DETECT_MAX`), clipped to [0, 1]: 0.5 loses half the detections, 1.5 finds
+            partly hidden markers more often (a wholly visible one is capped at 100 %).
+        noise: scales the blob-centre noise (:data:`LATERAL_RMS_PX`), the depth noise
+            (:data:`DEPTH_NOISE_CLEAR`, :data:`DEPTH_NOISE_EDGE`) and the gross depth outlier
+            rate (:data:`GROSS_RATE`).
+        strays: scales the projector-dot blobs per view (:data:`DOT_GHOSTS_PER_VIEW`) and the
+            static reflectors per sample (:data:`REFLECTORS_MEAN`).
+        occlusion: scales how much a partly hidden marker suffers: the half-detection gap
+            becomes ``DETECT_GAP50 * (2 - occlusion)`` (1.5: a marker must show more of itself
+            to be found) and the occluded blob's centre shift :data:`OCCLUSION_SHIFT` is
+            multiplied by it.
+
+    Raises:
+        ValidationError: a negative scale, or ``occlusion`` outside [0, 2).
+    """
+
+    detection: float = 1.0
+    noise: float = 1.0
+    strays: float = 1.0
+    occlusion: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in PERTURBATION_KNOBS:
+            if not float(getattr(self, name)) >= 0.0:
+                msg = f"ObservationModel.{name} must be >= 0, got {getattr(self, name)!r}"
+                raise ValidationError(msg)
+        if self.occlusion >= 2.0:
+            msg = f"ObservationModel.occlusion must be < 2, got {self.occlusion!r}"
+            raise ValidationError(msg)
+
+    @property
+    def is_nominal(self) -> bool:
+        """Whether every scale is 1 (the training model)."""
+        return all(getattr(self, k) == 1.0 for k in PERTURBATION_KNOBS)
+
+
+#: The observation model training uses.
+NOMINAL_OBSERVATION = ObservationModel()
+
+
 @dataclass(frozen=True, slots=True)
 class Camera:
     """One D415 depth viewpoint.
@@ -236,6 +291,25 @@ def sample_rig(rng: np.random.Generator, *, num_cameras: int = 4) -> list[Camera
         first = int(rng.integers(2))
         cams = [cams[first], cams[first + 2]]
     return cams
+
+
+def in_frustum(points_m: FloatArray, cams: list[Camera]) -> BoolArray:
+    """(K cameras, P points) booleans: the point projects into the camera's image (with the
+    :data:`IMAGE_MARGIN_PX` margin) at 0.3–6 m, whatever is in the way."""
+    p = np.asarray(points_m, np.float64).reshape(-1, 3)
+    out = np.zeros((len(cams), p.shape[0]), dtype=bool)
+    for k, cam in enumerate(cams):
+        rel = p - cam.centre_m
+        pc = rel @ cam.r_cw.T
+        z = pc[:, 2]
+        zs = np.where(z > 1e-6, z, 1.0)
+        u = cam.focal_px * pc[:, 0] / zs + IMAGE_W / 2
+        v = cam.focal_px * pc[:, 1] / zs + IMAGE_H / 2
+        d2 = np.einsum("ij,ij->i", rel, rel)
+        mg = IMAGE_MARGIN_PX
+        ok = (z > RANGE_M[0]) & (d2 < RANGE_M[1] ** 2)
+        out[k] = ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -450,10 +524,11 @@ def _dot_candidates(
     caps_b: FloatArray,
     caps_r: FloatArray,
     cam: Camera,
+    mean: float = DOT_GHOSTS_PER_VIEW,
 ) -> FloatArray:
     """Candidate projector-dot blobs on the suit facing ``cam`` (world, m), before the
-    line-of-sight test."""
-    n = int(rng.poisson(DOT_GHOSTS_PER_VIEW))
+    line-of-sight test; Poisson(``mean``) of them."""
+    n = int(rng.poisson(mean))
     if n == 0 or caps_r.size == 0:
         return np.zeros((0, 3))
     axis = caps_b - caps_a
@@ -473,9 +548,11 @@ def _dot_candidates(
     return np.asarray(q + (caps_r[c, None] + _DOT_LIFT_M) * e)
 
 
-def _reflectors(rng: np.random.Generator, root_m: FloatArray) -> FloatArray:
-    """Static stray reflectors around the actor (world, m)."""
-    n = int(rng.poisson(REFLECTORS_MEAN))
+def _reflectors(
+    rng: np.random.Generator, root_m: FloatArray, mean: float = REFLECTORS_MEAN
+) -> FloatArray:
+    """Static stray reflectors around the actor (world, m), Poisson(``mean``) of them."""
+    n = int(rng.poisson(mean))
     az = rng.uniform(0.0, 2.0 * np.pi, n)
     rad = rng.uniform(0.5, 1.2, n)
     return np.stack(
@@ -491,14 +568,18 @@ def observe(
     rng: np.random.Generator,
     *,
     realistic: bool = True,
+    model: ObservationModel = NOMINAL_OBSERVATION,
 ) -> tuple[list[FloatArray], BoolArray]:
     """Per-camera lifted 3D detections of frame ``index`` (world, m) and which markers each
     camera detected ((K, 53) booleans).
 
     With ``realistic=False`` detection is deterministic (:func:`visibility`), there are no
     gross errors, blob merges, strays or reflectors, and the blob centre has no noise; the
-    depth bias and noise stay.
+    depth bias and noise stay. ``model`` scales the measured model (stress tests; the default
+    is the model training uses, and draws the same random numbers as before it existed).
     """
+    gap50 = DETECT_GAP50 * (2.0 - model.occlusion)
+    noise = model.noise
     mk = frames.markers_m[index]
     n_mk = mk.shape[0]
     caps_a = frames.caps_a_m[index]
@@ -506,36 +587,44 @@ def observe(
     caps_r = frames.caps_radius_m
     shared = mk
     if realistic:
-        shared = np.concatenate([mk, _reflectors(rng, frames.joints_m[index, 0])])
+        refl = _reflectors(rng, frames.joints_m[index, 0], REFLECTORS_MEAN * model.strays)
+        shared = np.concatenate([mk, refl])
     n_sh = shared.shape[0]
     views: list[FloatArray] = []
     detected = np.zeros((len(cams), n_mk), dtype=bool)
     for k, cam in enumerate(cams):
         pts = shared
         if realistic:
-            pts = np.concatenate([shared, _dot_candidates(rng, caps_a, caps_b, caps_r, cam)])
+            dots_mean = DOT_GHOSTS_PER_VIEW * model.strays
+            pts = np.concatenate(
+                [shared, _dot_candidates(rng, caps_a, caps_b, caps_r, cam, dots_mean)]
+            )
         sight = _sight(pts, caps_a, caps_b, caps_r, cam)
         if realistic:
-            p = DETECT_MAX / (1.0 + np.exp(-(sight.gap - DETECT_GAP50) / DETECT_GAP_WIDTH))
+            with np.errstate(over="ignore"):  # far behind an occluder: exp -> inf, p -> 0
+                p = DETECT_MAX / (1.0 + np.exp(-(sight.gap - gap50) / DETECT_GAP_WIDTH))
+            if model.detection != 1.0:
+                p = np.clip(p * model.detection, 0.0, 1.0)
             det = sight.inside & (rng.random(pts.shape[0]) < p)
             # Dot blobs are on the surface: seen where their line of sight is clear.
             det[n_sh:] = sight.inside[n_sh:] & (sight.gap[n_sh:] > 0.0)
         else:
-            det = sight.inside & (sight.gap >= DETECT_GAP50)
+            det = sight.inside & (sight.gap >= gap50)
         detected[k] = det[:n_mk]
         idx = np.flatnonzero(det[:n_sh])
         z = sight.z[idx]
         rho = cam.focal_px * MARKER_RADIUS_M / z
-        shift = OCCLUSION_SHIFT * (1.0 - np.clip(sight.gap[idx], -1.5, 1.0)) * rho
+        hidden = 1.0 - np.clip(sight.gap[idx], -1.5, 1.0)
+        shift = OCCLUSION_SHIFT * model.occlusion * hidden * rho
         if realistic:
             shift = shift * np.exp(OCCLUSION_SHIFT_SPREAD * rng.normal(size=shift.size))
         uv = sight.uv[idx] + shift[:, None] * sight.away_cam[idx]
         znear = sight.znear[idx]
-        sigma = np.where(znear < _EDGE_ZNEAR_M, DEPTH_NOISE_EDGE, DEPTH_NOISE_CLEAR)
+        sigma = np.where(znear < _EDGE_ZNEAR_M, DEPTH_NOISE_EDGE, DEPTH_NOISE_CLEAR) * noise
         dz = _depth_bias(znear) + rng.normal(size=z.size) * sigma * _sigma_z(z, cam.focal_px)
         if realistic:
-            uv = uv + rng.normal(size=uv.shape) * LATERAL_RMS_PX
-            gross = rng.random(z.size) < GROSS_RATE
+            uv = uv + rng.normal(size=uv.shape) * (LATERAL_RMS_PX * noise)
+            gross = rng.random(z.size) < GROSS_RATE * noise
             dz = dz - gross * (GROSS_MIN_M + rng.exponential(GROSS_SCALE_M, z.size))
         zm = z + dz
         if realistic and idx.size > 1:
@@ -550,7 +639,8 @@ def observe(
         if realistic:
             dots = n_sh + np.flatnonzero(det[n_sh:])
             zd = sight.z[dots]
-            zd = zd + rng.normal(size=zd.size) * DEPTH_NOISE_CLEAR * _sigma_z(zd, cam.focal_px)
+            zd_noise = rng.normal(size=zd.size) * (DEPTH_NOISE_CLEAR * noise)
+            zd = zd + zd_noise * _sigma_z(zd, cam.focal_px)
             q = np.concatenate([q, _lift(sight.uv[dots], zd, cam)])
         views.append(q)
     return views, detected

@@ -4,6 +4,13 @@ Deterministic for a seed: the network starts from ``torch.manual_seed(seed)``; s
 epoch ``e`` draws its batch from ``numpy.random.default_rng([seed, e, s])`` and torch is
 re-seeded at each epoch start, so a run resumed from an epoch checkpoint continues exactly as
 an uninterrupted one would (on the same machine and torch build).
+
+The pool: the procedural takes, BVH clips (``motions``) and the motion corpus's train split
+(``corpus``, :mod:`.corpus`), all on bodies of the training seed streams. After each epoch the
+run is validated on a fixed set of its own: 48 samples of the ``validation`` seed stream
+(procedural takes; ``val_mpjpe_mm``), disjoint from every test set, and, when given, 48 of the
+corpus's validation split (``validation_motions``; ``val_corpus_mpjpe_mm``). The validation
+samples draw no random numbers of the training batches, so they do not change the weights.
 """
 
 from __future__ import annotations
@@ -21,8 +28,10 @@ from mocaprig.errors import ValidationError
 from mocaprig.process.body import BvhClip
 from mocaprig.process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from mocaprig.process.democap.config import DemocapConfig
-from mocaprig.process.democap.dataset import make_batch, make_pool, make_sample, pool_from_bvh
+from mocaprig.process.democap.corpus import corpus_pool
+from mocaprig.process.democap.dataset import make_batch, make_pool, pool_from_bvh, simulate_sample
 from mocaprig.process.democap.model import DemocapModel, build_network, democap_loss
+from mocaprig.process.democap.simdata import PoseFrames
 
 __all__ = ["TrainOptions", "train"]
 
@@ -45,6 +54,14 @@ class TrainOptions:
             the training stream); their names are stored in the checkpoint. A resumed run
             must be given the same clips as before, or more.
         motion_subjects: bodies per BVH clip.
+        corpus: clips of the motion corpus's train split (:mod:`.corpus`), each centred on
+            the rig and retargeted onto ``corpus_subjects`` training bodies of its own; their
+            names are stored in the checkpoint beside ``motions``' (and follow the same resume
+            rule).
+        corpus_subjects: bodies per corpus clip.
+        validation_motions: clips of the corpus's validation split: a second validation set
+            (one validation body per clip), reported as ``val_corpus_mpjpe_mm``. Never
+            trained on.
     """
 
     epochs: int
@@ -56,6 +73,9 @@ class TrainOptions:
     max_seconds: float | None = None
     motions: tuple[BvhClip, ...] = ()
     motion_subjects: int = 4
+    corpus: tuple[BvhClip, ...] = ()
+    corpus_subjects: int = 2
+    validation_motions: tuple[BvhClip, ...] = ()
 
 
 def _optimizer(
@@ -116,9 +136,13 @@ def train(
     if ckpt.scheduler_state is not None:
         sched.load_state_dict(ckpt.scheduler_state)
     pool = make_pool(ckpt.seed, "train", takes=options.takes)
-    names = [c.name for c in options.motions]
+    names = [c.name for c in (*options.motions, *options.corpus)]
     if len(set(names)) != len(names):
-        msg = f"BVH clips must have distinct names, got {names}"
+        msg = f"BVH and corpus clips must have distinct names, got {names}"
+        raise ValidationError(msg)
+    overlap = sorted(set(names) & {c.name for c in options.validation_motions})
+    if overlap:
+        msg = f"clip(s) {overlap} are both trained on and in the validation set"
         raise ValidationError(msg)
     dropped = sorted(set(ckpt.train_motions) - set(names))
     if dropped:
@@ -129,8 +153,24 @@ def train(
         raise ValidationError(msg)
     for clip in options.motions:
         pool += pool_from_bvh(clip, ckpt.seed, subjects=options.motion_subjects, split="train")
+    if options.corpus:
+        pool += corpus_pool(
+            options.corpus, ckpt.seed, split="train", subjects=options.corpus_subjects
+        )
+        _log.info("%d corpus clip(s) in the training pool", len(options.corpus))
     ckpt.train_motions = sorted(set(ckpt.train_motions) | set(names))
-    val = _validation_set(ckpt.seed, cfg.input_px)
+    val = _validation_set(
+        make_pool(ckpt.seed, "validation", takes=6, seconds=3.0), ckpt.seed, cfg.input_px
+    )
+    val_corpus = (
+        _validation_set(
+            corpus_pool(options.validation_motions, ckpt.seed, split="validation", subjects=1),
+            ckpt.seed,
+            cfg.input_px,
+        )
+        if options.validation_motions
+        else None
+    )
     todo = max(0, options.epochs - ckpt.epoch)
     total = todo * steps
     t_start = time.monotonic()
@@ -161,6 +201,8 @@ def train(
         record["lr"] = float(opt.param_groups[0]["lr"])
         record["wall_s"] = time.monotonic() - t_start
         record["val_mpjpe_mm"] = _validate(ckpt.model, val)
+        if val_corpus is not None:
+            record["val_corpus_mpjpe_mm"] = _validate(ckpt.model, val_corpus)
         ckpt.history.append(record)
         ckpt.optimizer_state = opt.state_dict()
         ckpt.scheduler_state = sched.state_dict()
@@ -181,16 +223,20 @@ def train(
 _Val = list[tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]]
 
 
-def _validation_set(seed: int, size_px: int, n: int = 48) -> _Val:
-    """Fixed held-out samples (test seed stream, no rotation augmentation)."""
-    pool = make_pool(seed, "test", takes=6, seconds=3.0)
+def _validation_set(pool: list[PoseFrames], seed: int, size_px: int, n: int = 48) -> _Val:
+    """``n`` fixed samples of ``pool`` (validation seed streams, no rotation augmentation);
+    frames without a usable cloud are replaced by the next draw."""
     rng = np.random.default_rng([seed, 99])
     out: _Val = []
-    for i in range(n):
-        take = pool[i % len(pool)]
-        s = make_sample(
+    tries = 0
+    while len(out) < n and tries < 20 * n:
+        take = pool[tries % len(pool)]
+        tries += 1
+        s = simulate_sample(
             take, int(rng.integers(take.num_frames)), rng, augment=False, size_px=size_px
         )
+        if s is None:
+            continue
         out.append(
             (
                 torch.from_numpy(s.front)[None, None],
@@ -199,6 +245,9 @@ def _validation_set(seed: int, size_px: int, n: int = 48) -> _Val:
                 s.joints_n,
             )
         )
+    if not out:
+        msg = "no validation frame gave a usable cloud; the validation takes are out of view"
+        raise ValidationError(msg)
     return out
 
 

@@ -247,7 +247,7 @@ def test_cli_train_variant_then_eval(
 ) -> None:
     ck = tmp_path / "cli.pt"
     base = ["democap", "train", "--out", str(ck), "--takes", "1", "--samples-per-epoch", "2"]
-    base += ["--batch-size", "2", "--threads", "1"]
+    base += ["--batch-size", "2", "--threads", "1", "--no-corpus"]
     assert main([*base, "--variant", variant, "--epochs", "1", "--json"]) == 0
     first = json.loads(capsys.readouterr().out)
     assert (first["variant"], first["epochs"]) == (variant, 1)
