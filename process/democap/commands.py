@@ -55,6 +55,7 @@ examples:
   mocaprig democap train --config lite --out lite.pt --overwrite --max-minutes 30
   mocaprig democap train --variant markers+pose --out mp.pt --epochs 4 --threads 1
   mocaprig democap train --config lite --out mine.pt --bvh walk.bvh dance.bvh --epochs 40
+  mocaprig democap train --config paper --out paper.pt --epochs 60 --device cuda --data-workers 12
   mocaprig democap train --out loao.pt --hold-out-activity dance --epochs 40
   mocaprig democap train --out sim-only.pt --no-corpus --epochs 40
 
@@ -159,6 +160,21 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     tr.add_argument("--samples-per-epoch", type=int, default=None, help="override the config")
     tr.add_argument("--batch-size", type=int, default=None, help="override the config")
     tr.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    tr.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where the network trains (auto: a CUDA GPU when torch sees one, with mixed "
+        "precision; else the CPU)",
+    )
+    tr.add_argument(
+        "--data-workers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="processes simulating training batches ahead (0: in the training process; a GPU "
+        "wants several). The batches do not depend on N",
+    )
     tr.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time")
     tr.add_argument(
         "--bvh",
@@ -358,6 +374,8 @@ def democap_train(args: argparse.Namespace) -> int:
         samples_per_epoch=args.samples_per_epoch,
         batch_size=args.batch_size,
         threads=args.threads,
+        device=args.device,
+        data_workers=args.data_workers,
         max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes,
         motions=motions,
         motion_subjects=args.bvh_subjects,

@@ -15,11 +15,16 @@ samples draw no random numbers of the training batches, so they do not change th
 
 from __future__ import annotations
 
+import collections
+import itertools
 import logging
+import multiprocessing
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Final, Literal
 
 import numpy as np
 import torch
@@ -29,11 +34,17 @@ from mocaprig.process.body import BvhClip
 from mocaprig.process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from mocaprig.process.democap.config import DemocapConfig
 from mocaprig.process.democap.corpus import corpus_pool
-from mocaprig.process.democap.dataset import make_batch, make_pool, pool_from_bvh, simulate_sample
+from mocaprig.process.democap.dataset import (
+    Batch,
+    make_batch,
+    make_pool,
+    pool_from_bvh,
+    simulate_sample,
+)
 from mocaprig.process.democap.model import DemocapModel, build_network, democap_loss
 from mocaprig.process.democap.simdata import PoseFrames
 
-__all__ = ["TrainOptions", "train"]
+__all__ = ["Device", "TrainOptions", "resolve_device", "train"]
 
 _log = logging.getLogger(__name__)
 
@@ -62,6 +73,11 @@ class TrainOptions:
         validation_motions: clips of the corpus's validation split: a second validation set
             (one validation body per clip), reported as ``val_corpus_mpjpe_mm``. Never
             trained on.
+        device: ``"cuda"`` (a GPU; mixed precision), ``"cpu"``, or ``"auto"`` (CUDA when
+            torch sees one).
+        data_workers: processes simulating the training batches ahead of the network (0: in
+            the training process). Each step's batch comes from its own seeded generator, so
+            the batches, and on the CPU the trained weights, do not depend on this number.
     """
 
     epochs: int
@@ -76,6 +92,72 @@ class TrainOptions:
     corpus: tuple[BvhClip, ...] = ()
     corpus_subjects: int = 2
     validation_motions: tuple[BvhClip, ...] = ()
+    device: Device = "auto"
+    data_workers: int = 0
+
+
+Device = Literal["auto", "cpu", "cuda"]
+#: Batches simulated ahead per data worker.
+_PREFETCH_PER_WORKER: Final = 2
+
+
+def resolve_device(device: Device) -> torch.device:
+    """The torch device of a ``TrainOptions.device`` choice.
+
+    Raises:
+        ValidationError: an unknown choice, or ``"cuda"`` without a CUDA device.
+    """
+    if device not in ("auto", "cpu", "cuda"):
+        msg = f"device must be 'auto', 'cpu' or 'cuda', got {device!r}"
+        raise ValidationError(msg)
+    if device == "cuda" and not torch.cuda.is_available():
+        msg = "device 'cuda' was asked for but torch sees no CUDA device; use --device cpu"
+        raise ValidationError(msg)
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+_WORKER_POOL: list[PoseFrames] = []
+
+
+def _init_worker(pool: list[PoseFrames]) -> None:
+    # The training pool is sent once per worker process, not with every batch.
+    global _WORKER_POOL
+    _WORKER_POOL = pool
+    torch.set_num_threads(1)  # in the worker process only: simulation is numpy work
+
+
+def _worker_batch(key: tuple[int, int, int], size: int, size_px: int) -> Batch:
+    return make_batch(_WORKER_POOL, np.random.default_rng(list(key)), size, size_px=size_px)
+
+
+def _batches(
+    pool: list[PoseFrames],
+    keys: Sequence[tuple[int, int, int]],
+    size: int,
+    size_px: int,
+    workers: int,
+) -> Iterator[Batch]:
+    """The batches of ``keys`` (seed, epoch, step) in order; simulated ``workers`` processes
+    ahead when ``workers`` > 0."""
+    if workers <= 0:
+        for key in keys:
+            yield make_batch(pool, np.random.default_rng(list(key)), size, size_px=size_px)
+        return
+    ctx = multiprocessing.get_context("spawn")  # no fork of a process holding torch threads
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                             initargs=(pool,)) as ex:  # fmt: skip
+        ahead: collections.deque[Future[Batch]] = collections.deque()
+        todo = iter(keys)
+        for key in itertools.islice(todo, workers * _PREFETCH_PER_WORKER):
+            ahead.append(ex.submit(_worker_batch, key, size, size_px))
+        while ahead:
+            batch = ahead.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
+                ahead.append(ex.submit(_worker_batch, nxt, size, size_px))
+            yield batch
 
 
 def _optimizer(
@@ -127,10 +209,17 @@ def train(
         torch.manual_seed(options.seed)
         ckpt = Checkpoint(config=config, model=build_network(config), seed=options.seed)
     cfg = ckpt.config
+    if options.data_workers < 0:
+        msg = f"data_workers must be >= 0, got {options.data_workers}"
+        raise ValidationError(msg)
+    device = resolve_device(options.device)
+    amp = device.type == "cuda"
     torch.set_num_threads(max(1, options.threads))
+    ckpt.model.to(device)
     batch = options.batch_size or cfg.batch_size
     steps = max(1, (options.samples_per_epoch or cfg.samples_per_epoch) // batch)
     opt, sched = _optimizer(ckpt.model, cfg)
+    scaler = torch.amp.GradScaler("cuda", enabled=amp)
     if ckpt.optimizer_state is not None:
         opt.load_state_dict(ckpt.optimizer_state)
     if ckpt.scheduler_state is not None:
@@ -175,19 +264,29 @@ def train(
     total = todo * steps
     t_start = time.monotonic()
     done = 0
+    _log.info(
+        "training on %s%s, batches simulated %s",
+        device,
+        " with mixed precision" if amp else "",
+        f"by {options.data_workers} worker process(es)" if options.data_workers else "in-process",
+    )
     for epoch in range(ckpt.epoch, options.epochs):
         torch.manual_seed(ckpt.seed * 100_003 + epoch)
         ckpt.model.train()
         sums: dict[str, float] = {}
-        for step in range(steps):
-            rng = np.random.default_rng([ckpt.seed, epoch, step])
-            b = make_batch(pool, rng, batch, size_px=cfg.input_px)
-            front = ckpt.model(b.front)
-            back = ckpt.model(b.back)
-            loss, parts = democap_loss(front, back, b.markers, b.joints, cfg)
+        keys = [(ckpt.seed, epoch, step) for step in range(steps)]
+        for b in _batches(pool, keys, batch, cfg.input_px, options.data_workers):
+            with torch.autocast(device.type, dtype=torch.float16, enabled=amp):
+                front = ckpt.model(b.front.to(device, non_blocking=True))
+                back = ckpt.model(b.back.to(device, non_blocking=True))
+            # The loss in float32: heat-map soft-argmax and sums are precision-sensitive.
+            loss, parts = democap_loss(
+                _float(front), _float(back), b.markers.to(device), b.joints.to(device), cfg
+            )
             opt.zero_grad(set_to_none=True)
-            loss.backward()  # type: ignore[no-untyped-call]
-            opt.step()
+            scaler.scale(loss).backward()  # type: ignore[no-untyped-call]
+            scaler.step(opt)
+            scaler.update()
             parts["loss"] = float(loss.detach())
             for k, v in parts.items():
                 sums[k] = sums.get(k, 0.0) + v
@@ -200,9 +299,9 @@ def train(
         record["epoch"] = float(ckpt.epoch)
         record["lr"] = float(opt.param_groups[0]["lr"])
         record["wall_s"] = time.monotonic() - t_start
-        record["val_mpjpe_mm"] = _validate(ckpt.model, val)
+        record["val_mpjpe_mm"] = _validate(ckpt.model, val, device)
         if val_corpus is not None:
-            record["val_corpus_mpjpe_mm"] = _validate(ckpt.model, val_corpus)
+            record["val_corpus_mpjpe_mm"] = _validate(ckpt.model, val_corpus, device)
         ckpt.history.append(record)
         ckpt.optimizer_state = opt.state_dict()
         ckpt.scheduler_state = sched.state_dict()
@@ -216,8 +315,24 @@ def train(
         if options.max_seconds is not None and time.monotonic() - t_start > options.max_seconds:
             _log.info("time budget reached after epoch %d", ckpt.epoch)
             break
-    ckpt.model.eval()
+    ckpt.model.to("cpu").eval()
     return ckpt
+
+
+def _float(x: Any) -> Any:
+    """Model outputs (tensors, lists of them, the output records) as float32: under mixed
+    precision the network runs in float16, the loss in float32."""
+    if isinstance(x, torch.Tensor):
+        return x.float()
+    if isinstance(x, (tuple, list)):
+        return type(x)(_float(v) for v in x)
+    slots = getattr(type(x), "__slots__", ())
+    if slots:
+        out = object.__new__(type(x))
+        for name in slots:
+            object.__setattr__(out, name, _float(getattr(x, name)))
+        return out
+    return x
 
 
 _Val = list[tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]]
@@ -251,7 +366,7 @@ def _validation_set(pool: list[PoseFrames], seed: int, size_px: int, n: int = 48
     return out
 
 
-def _validate(model: DemocapModel, val: _Val) -> float:
+def _validate(model: DemocapModel, val: _Val, device: torch.device | None = None) -> float:
     """Mean joint error (mm, 17 joints without the toes) on the fixed held-out samples."""
     from mocaprig.process.democap.infer import decode  # local: infer imports this module's siblings
 
@@ -259,9 +374,10 @@ def _validate(model: DemocapModel, val: _Val) -> float:
     keep = [k for k in range(19) if k not in (14, 18)]
     errs = []
     with torch.inference_mode():
-        front = torch.cat([v[0] for v in val])
-        back = torch.cat([v[1] for v in val])
+        front = torch.cat([v[0] for v in val]).to(device or "cpu")
+        back = torch.cat([v[1] for v in val]).to(device or "cpu")
         _, j = decode(model, front, back)
+        j = j.float().cpu()
     for i, (_, _, scale, truth) in enumerate(val):
         d = (j[i].double().numpy() - truth) * scale
         errs.append(np.linalg.norm(d[keep], axis=-1).mean())

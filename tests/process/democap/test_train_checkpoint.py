@@ -25,7 +25,7 @@ from mocaprig.process.democap.dataset import (
     pool_from_bvh,
 )
 from mocaprig.process.democap.infer import DemocapPredictor
-from mocaprig.process.democap.train import TrainOptions, train
+from mocaprig.process.democap.train import TrainOptions, resolve_device, train
 from tests.process.body._body_helpers import motion_as_bvh
 
 _OPTS = TrainOptions(epochs=2, seed=3, takes=2, threads=1)
@@ -49,6 +49,29 @@ def test_training_is_deterministic_and_resume_matches(
         torch.testing.assert_close(a, b)
     hist = load_checkpoint(full).history
     assert {"loss", "val_mpjpe_mm", "lr"} <= set(hist[-1])
+
+
+def test_batches_simulated_in_worker_processes_train_the_same_weights(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    here = tmp_path / "here.pt"
+    train(here, TrainOptions(epochs=1, seed=3, takes=2, threads=1), config=tiny_config)
+    there = tmp_path / "there.pt"
+    opts = TrainOptions(epochs=1, seed=3, takes=2, threads=1, data_workers=2)
+    train(there, opts, config=tiny_config)
+    for a, b in zip(_weights(here), _weights(there), strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_training_device_choices() -> None:
+    assert resolve_device("cpu") == torch.device("cpu")
+    want = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto").type == want
+    if not torch.cuda.is_available():
+        with pytest.raises(ValidationError, match="no CUDA device"):
+            resolve_device("cuda")
+    with pytest.raises(ValidationError, match="device must be"):
+        resolve_device("tpu")  # type: ignore[arg-type]
 
 
 def test_train_refuses_to_overwrite(tmp_path: Path, tiny_config: DemocapConfig) -> None:
