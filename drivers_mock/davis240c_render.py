@@ -16,7 +16,8 @@ Event cameras only see brightness *changes*, so what matters is texture and cont
 Rendering (§4.4 step 3): the exact capsule ray caster :func:`process.body.render_pinhole` on an
 undistorted canvas at ``supersample``× the DAVIS resolution (wide enough for the lens's barrel
 distortion), remapped through the DAVIS's Brown–Conrady distortion onto the supersampled sensor
-grid and box-downsampled to 240×180. The supersampling gives partial-coverage edge pixels (real
+grid and box-downsampled to the sensor (240×180 for the DAVIS240C, 346×260 for a DAVIS346, as
+the rig's DAVIS camera says). The supersampling gives partial-coverage edge pixels (real
 sensors integrate over the pixel area, so edges give graded, not all-or-nothing, changes) and the
 bilinear remap adds ≈ 0.25 px of optical blur. Output is linear irradiance in arbitrary units,
 typically 0.05–1.
@@ -40,6 +41,7 @@ from mocaprig.validation import check_positive, check_range
 
 __all__ = [
     "DAVIS_SHAPE",
+    "SENSOR_SHAPES",
     "DavisLook",
     "DavisRenderer",
     "log_intensity",
@@ -52,6 +54,9 @@ I64 = npt.NDArray[np.int64]
 
 #: Sensor shape (rows, columns): 180×240 (davis240c-usb.md §13).
 DAVIS_SHAPE: tuple[int, int] = (180, 240)
+
+#: Sensor shapes (rows, columns) the renderer accepts: DAVIS240C 180×240, DAVIS346 260×346.
+SENSOR_SHAPES: tuple[tuple[int, int], ...] = (DAVIS_SHAPE, (260, 346))
 
 #: ESIM's ``log_eps`` (eventcap-method.md §4.1): L = log(eps + I) for I of order 1.
 LOG_EPS = 1e-3
@@ -228,7 +233,9 @@ class _Frames:
 
 
 class DavisRenderer:
-    """Renders the scenario through the DAVIS240C's lens (see the module doc).
+    """Renders the scenario through the DAVIS's lens (see the module doc).
+
+    The sensor size is the rig's DAVIS camera's: 240×180 (DAVIS240C) or 346×260 (DAVIS346).
 
     Args:
         scenario: The simulated world.
@@ -243,10 +250,15 @@ class DavisRenderer:
         self.scenario = scenario
         self.look = DavisLook() if look is None else look
         cam = scenario.rig.davis.camera
-        if (cam.height, cam.width) != DAVIS_SHAPE:
-            msg = f"the DAVIS camera must be 240×180, got {cam.width}×{cam.height}"
+        if (cam.height, cam.width) not in SENSOR_SHAPES:
+            msg = (
+                f"the DAVIS camera must be 240×180 (DAVIS240C) or 346×260 (DAVIS346), got "
+                f"{cam.width}×{cam.height}; fix the rig's DAVIS camera"
+            )
             raise ValidationError(msg)
         self.camera = cam
+        #: Sensor shape (rows, columns), from the rig's DAVIS camera.
+        self.shape: tuple[int, int] = (int(cam.height), int(cam.width))
         self._tmpl = capsule_template(scenario.shape)
         cb = scenario.clapperboard
         self._clap_radius_m = float(cb.arm_thickness_m)
@@ -270,7 +282,7 @@ class DavisRenderer:
         self._setup_canvas()
         self._probe_local = self._probe_points()
         self._cache_key = b""
-        self._cache_img = np.zeros(DAVIS_SHAPE)
+        self._cache_img = np.zeros(self.shape)
         #: Images actually ray-cast (cache misses), for profiling.
         self.renders = 0
 
@@ -280,7 +292,7 @@ class DavisRenderer:
     def _setup_canvas(self) -> None:
         cam = self.camera
         s = self.look.supersample
-        h, w = DAVIS_SHAPE
+        h, w = self.shape
         # Centres of the sub-pixels in sensor pixel coordinates ((0, 0) = centre of pixel 0).
         us = (np.arange(w * s) + 0.5) / s - 0.5
         vs = (np.arange(h * s) + 0.5) / s - 0.5
@@ -417,10 +429,10 @@ class DavisRenderer:
         return float(1.0 + self.look.flicker_depth * np.sin(ph))
 
     def render_batch(self, t_ns: npt.ArrayLike) -> F64:
-        """Linear irradiance ``(T, 180, 240)`` at session times (1-D int ns)."""
+        """Linear irradiance ``(T, H, W)`` (sensor rows, columns) at session times (1-D int ns)."""
         t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
         fr = self.frames(t)
-        out = np.empty((t.shape[0], *DAVIS_SHAPE))
+        out = np.empty((t.shape[0], *self.shape))
         for i in range(t.shape[0]):
             # The room and the camera are static: identical part poses give the identical
             # image, so a still actor (every scenario's static start) costs no ray casting.
@@ -433,7 +445,7 @@ class DavisRenderer:
         return out
 
     def render(self, t_ns: int) -> F64:
-        """Linear irradiance ``(180, 240)`` at one session time (int ns); row 0 = top."""
+        """Linear irradiance ``(H, W)`` at one session time (int ns); row 0 = top."""
         out: F64 = self.render_batch(np.array([int(t_ns)]))[0]
         return out
 
@@ -468,7 +480,7 @@ class DavisRenderer:
             borderMode=cv2.BORDER_REPLICATE,
         )
         s = self.look.supersample
-        h, w = DAVIS_SHAPE
+        h, w = self.shape
         out: F64 = fine.reshape(h, s, w, s).mean(axis=(1, 3), dtype=np.float64)
         return out
 

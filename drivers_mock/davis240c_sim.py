@@ -1,5 +1,11 @@
 """DAVIS240C sensor simulator: DVS events, APS exposures, IMU samples and trigger edges.
 
+The defaults are set so that the output's statistics match real DAVIS recordings
+(``docs/davis-sim.md``, ``benchmarks/davis_sim_realism.py``): same-pixel intervals of ≥ 1.5 ms,
+40–50 % ON events, 0.1 Hz of background activity per pixel, and fewer events than
+``contrast / C`` on fast high-contrast edges. The sensor size is the rig's DAVIS camera's,
+240×180 (DAVIS240C) or 346×260 (DAVIS346).
+
 Implements :class:`drivers_mock.davis_activity.DavisActivitySource` from the simulated world
 (:class:`mocaprig.drivers_mock.scenario.Scenario`), seen through :class:`DavisRenderer`
 (``davis240c_render.py``: textured capsule body, clapperboard, textured room, Lambert light).
@@ -13,23 +19,40 @@ Implements :class:`drivers_mock.davis_activity.DavisActivitySource` from the sim
   placed at every APS exposure start and end. The schedule sits on a fixed grid from the reset
   instant, so the output does not depend on how the caller splits time into windows.
 * Each pixel compares ``L = log(1e-3 + I)`` with its memorised level ``ref``; ``L`` is linear
-  between renders. Every crossing of ``ref + C_on`` (ON) or ``ref − C_off`` (OFF) is an event at
-  the interpolated time; ``ref`` moves by one threshold per crossing. A crossing less than
-  ``refractory_us`` after the pixel's previous event is dropped but ``ref`` still advances (as
-  ESIM). Thresholds are drawn once per pixel from N(C, σ_C), clamped at ≥ 0.01 (v2e-style
-  fixed-pattern mismatch, §4.4 step 5). Defaults C_on = C_off = 0.2, σ_C = 0.03: the
-  practical band of §4.3 (the chip's best-case 11 % ≈ 0.10 ln needs ideal biases).
+  between renders. A crossing of ``ref + C_on`` (ON) or ``ref − C_off`` (OFF) is an event at
+  the interpolated time. Thresholds are drawn once per pixel from N(C, σ_C), clamped at
+  ≥ 0.01 (v2e-style fixed-pattern mismatch, §4.4 step 5). Defaults C_on = 0.22, C_off = 0.18,
+  σ_C = 0.03: the practical band of §4.3 (the chip's best-case 11 % ≈ 0.10 ln needs ideal
+  biases) with the ON threshold higher, so a scene that returns to its start gives
+  C_off / (C_on + C_off) = 45 % ON events (RPG ECD DAVIS240C recordings: 42–45 %; the
+  shapes file here: 41.6 %).
+* **Dead time** (refractory period): after an event the pixel's reset switch holds its
+  differencing amplifier for ``refractory_us`` (per pixel, log-normal spread
+  ``refractory_spread``), during which the memorised level follows the input; on release the
+  pixel memorises the level ``L`` has *then*. So a fast high-contrast edge gives fewer events
+  than its contrast / C (the change during the dead time is lost), and no pixel fires twice
+  within its dead time. Default 1.6 ms: the real DAVIS240C recording's shortest same-pixel
+  interval is 1.67 ms (1st percentile 4.4 ms); the DAVIS346 file's start at ≈ 1.25 ms (1st
+  percentile 1.9 ms). ``refractory_us = 0`` is ESIM's ideal ``ref ± C`` per event.
 * After a reset (or a gap between windows) each pixel's ``ref`` starts at a fixed random
   point of ``(L − C_on, L + C_off)`` (between its firing levels), so pixels do not fire in lockstep.
-* Optional photoreceptor low-pass (``cutoff_hz``, off by default; §4.4 step 4): ``L`` goes
-  through a first-order filter whose cutoff scales with the pixel's irradiance (v2e), solved
-  exactly between renders; events are then generated on the filtered ``L``.
-* Events get a fixed pixel latency (``latency_us``, default 12 µs: "~12 µs at 1 klux",
-  davis240c-usb.md §13) and are floored to integer µs.
+* **Pixel bandwidth**: the photoreceptor low-pass (``cutoff_hz``, default 300 Hz at
+  irradiance 1, §4.3: 100–300 Hz in good light; 0 = off): ``L`` goes through a first-order
+  filter whose cutoff scales with the pixel's irradiance (v2e), solved exactly between renders;
+  events are generated on the filtered ``L``.
+* Events get a pixel latency (``latency_us``, default 12 µs: "~12 µs at 1 klux",
+  davis240c-usb.md §13) plus Gaussian **timestamp jitter** (``jitter_us``, σ default 10 µs; the
+  total latency is cut at ≥ 0) and are floored to integer µs.
+* **Global-shutter burst** (``aps_burst_fraction``, default 0): at each APS exposure start
+  (global reset, OFF) and end (charge transfer, ON) a fraction of the pixels fire one event.
+  The real DAVIS346 recording shows none (its events in the 500 µs after an exposure edge are
+  ≈ 1–2 *below* its mean rate, ±0.5), so it is off; it is there for setups that show one.
 * Noise (:class:`DvsNoise`): shot noise (random polarity) and leak events (ON only, the
   reference leaking down, v2e §4.2), independent Poisson processes per pixel whose rates spread
-  log-normally across pixels (0.1 decade, v2e's ``noise_rate_cov_decades``). They are drawn in
-  fixed 10 ms blocks keyed by the block index, so they too are independent of the windowing.
+  log-normally across pixels (0.1 decade, v2e's ``noise_rate_cov_decades``); 0.05 Hz each by
+  default, 0.1 Hz per pixel in all. They are drawn in fixed 10 ms blocks keyed by the block
+  index, so they too are independent of the windowing. They do not reset the pixel (a
+  simplification: at 0.1 Hz they rarely meet signal events).
 
 **APS** (§4.4 step 6, davis240c-usb.md §9): global-shutter exposures of ``exposure_us``
 starting at ``exposure_offset_us + k·frame_interval_us`` (device µs, ``k = 0, 1, …``). The frame
@@ -104,8 +127,8 @@ _log = logging.getLogger(__name__)
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
-_H, _W = DAVIS_SHAPE
-_NPIX = _H * _W
+#: Pixels of the largest supported sensor (DAVIS346, 346×260): the bound on hot pixels.
+_MAX_PIX = 346 * 260
 #: Noise events are drawn in blocks of this many device µs (keyed by block index).
 _NOISE_BLOCK_US = 10_000
 #: Reference exposure of the APS gain (the libcaer default, davis240c-usb.md §9.3).
@@ -120,6 +143,10 @@ _APS_FPN = 0.005
 class DvsNoise:
     """DVS noise rates (eventcap-method.md §4.3: shot 0.001–1 Hz, leak 0.01–0.1 Hz per pixel).
 
+    The defaults give 0.1 Hz of background activity per pixel, what the real DAVIS240C
+    recording shows in good light (docs/davis-sim.md: 0.11 Hz of isolated events per pixel,
+    an upper bound since some of them are sparse edge events).
+
     Attributes:
         shot_hz: Mean shot-noise rate per pixel (Hz), half ON, half OFF.
         leak_hz: Mean leak-event rate per pixel (Hz), all ON.
@@ -129,7 +156,7 @@ class DvsNoise:
         hot_pixel_hz: Event rate of a hot pixel (Hz).
     """
 
-    shot_hz: float = 0.1
+    shot_hz: float = 0.05
     leak_hz: float = 0.05
     spread_decades: float = 0.1
     hot_pixels: int = 0
@@ -139,7 +166,7 @@ class DvsNoise:
         check_range(self.shot_hz, 0.0, 1e3, name="DvsNoise.shot_hz")
         check_range(self.leak_hz, 0.0, 1e3, name="DvsNoise.leak_hz")
         check_range(self.spread_decades, 0.0, 2.0, name="DvsNoise.spread_decades")
-        check_range(self.hot_pixels, 0, _NPIX, name="DvsNoise.hot_pixels")
+        check_range(self.hot_pixels, 0, _MAX_PIX, name="DvsNoise.hot_pixels")
         check_range(self.hot_pixel_hz, 0.0, 1e5, name="DvsNoise.hot_pixel_hz")
 
     @classmethod
@@ -149,8 +176,12 @@ class DvsNoise:
 
     @property
     def total_hz(self) -> float:
-        """Expected noise events per second over the whole 240×180 array."""
-        return (self.shot_hz + self.leak_hz) * _NPIX + self.hot_pixels * self.hot_pixel_hz
+        """Expected noise events per second over a whole 240×180 (DAVIS240C) array."""
+        return self.rate_hz(DAVIS_SHAPE[0] * DAVIS_SHAPE[1])
+
+    def rate_hz(self, pixels: int) -> float:
+        """Expected noise events per second over an array of ``pixels`` pixels."""
+        return (self.shot_hz + self.leak_hz) * pixels + self.hot_pixels * self.hot_pixel_hz
 
 
 @dataclass(slots=True, eq=False)
@@ -210,7 +241,7 @@ def photoreceptor_lowpass(x0: F64, x1: F64, y0: F64, dt_us: float, tau_us: F64 |
     return out
 
 
-def _esim_step(
+def _dvs_step(
     l0: F64,
     l1: F64,
     u0: float,
@@ -218,45 +249,49 @@ def _esim_step(
     ref: F64,
     c_on: F64,
     c_off: F64,
-    last_us: F64,
-    refractory_us: float,
+    dead_until: F64,
+    dead_us: F64,
 ) -> tuple[F64, I64, npt.NDArray[np.bool_]]:
-    """ESIM threshold crossings of every pixel for ``L`` linear from ``l0`` at ``u0`` to ``l1``.
+    """Events of every pixel for ``L`` linear from ``l0`` at ``u0`` to ``l1`` at ``u1`` (µs).
 
-    Updates ``ref`` (memorised levels) and ``last_us`` (time of each pixel's last event) in
-    place. Returns event times (float device µs), flat pixel indices and polarities (True = ON).
+    A pixel fires when ``L`` reaches ``ref + C_on`` (ON) or ``ref − C_off`` (OFF), at the
+    interpolated time ``t``; its reset switch then holds it for ``dead_us`` and, on release at
+    ``t + dead_us``, it memorises the level ``L`` has then (module doc: dead time). With
+    ``dead_us = 0`` this is ESIM's ``ref ± C``. Updates ``ref`` and ``dead_until`` (each pixel's
+    release time, µs) in place. Returns event times (float device µs), flat pixel indices and
+    polarities (True = ON).
     """
-    n_on = np.floor((l1 - ref) / c_on)
-    n_off = np.floor((ref - l1) / c_off)
-    i_on = np.flatnonzero(n_on >= 1.0)
-    i_off = np.flatnonzero(n_off >= 1.0)
-    if i_on.size + i_off.size == 0:
-        return np.empty(0), np.empty(0, np.int64), np.empty(0, bool)
-    idx = np.concatenate([i_on, i_off])
-    n = np.concatenate([n_on[i_on], n_off[i_off]]).astype(np.int64)
-    step = np.concatenate([c_on[i_on], -c_off[i_off]])
-    pol = np.concatenate([np.ones(i_on.size, bool), np.zeros(i_off.size, bool)])
-    base = ref[idx].copy()
-    ref[idx] = base + n * step
-    a = l0[idx]
-    dl = l1[idx] - a
-    safe = np.where(dl != 0.0, dl, 1.0)
     span = u1 - u0
+    if span <= 0:
+        return np.empty(0), np.empty(0, np.int64), np.empty(0, bool)
+    slope = (l1 - l0) / span
+    # Pixels released inside this interval memorise the level at their release.
+    rel = np.flatnonzero((dead_until >= u0) & (dead_until < u1))
+    ref[rel] = l0[rel] + slope[rel] * (dead_until[rel] - u0)
+    # L is linear, so a pixel responsive before u1 fires iff L(u1) lies outside its band.
+    cand = np.flatnonzero(dead_until < u1)
+    cand = cand[(l1[cand] >= ref[cand] + c_on[cand]) | (l1[cand] <= ref[cand] - c_off[cand])]
     ts: list[F64] = []
     ids: list[I64] = []
     ps: list[npt.NDArray[np.bool_]] = []
-    # The k-th crossing of every pixel that has one, in time order per pixel, so the
-    # refractory check against the pixel's previous event is exact.
-    for k in range(1, int(n.max()) + 1):
-        sel = np.flatnonzero(n >= k)
-        p = idx[sel]
-        frac = np.clip((base[sel] + k * step[sel] - a[sel]) / safe[sel], 0.0, 1.0)
-        t = u0 + frac * span
-        ok = t - last_us[p] >= refractory_us
-        last_us[p[ok]] = t[ok]
-        ts.append(t[ok])
-        ids.append(p[ok])
-        ps.append(pol[sel][ok])
+    while cand.size:
+        up = l1[cand] > ref[cand]
+        level = np.where(up, ref[cand] + c_on[cand], ref[cand] - c_off[cand])
+        start = np.maximum(dead_until[cand], u0)
+        t = np.clip(u0 + (level - l0[cand]) / slope[cand], start, u1)
+        ts.append(t)
+        ids.append(cand)
+        ps.append(up)
+        free = t + dead_us[cand]
+        dead_until[cand] = free
+        inside = free < u1
+        # Released before u1: the memorised level is L at release (exactly ``level`` when
+        # there is no dead time).
+        ref[cand] = np.where(dead_us[cand] > 0.0, l0[cand] + slope[cand] * (free - u0), level)
+        cand = cand[inside]
+        cand = cand[(l1[cand] >= ref[cand] + c_on[cand]) | (l1[cand] <= ref[cand] - c_off[cand])]
+    if not ts:
+        return np.empty(0), np.empty(0, np.int64), np.empty(0, bool)
     return np.concatenate(ts), np.concatenate(ids), np.concatenate(ps)
 
 
@@ -273,10 +308,16 @@ class DavisSimulator:
         contrast_on: Mean ON threshold (ln units).
         contrast_off: Mean OFF threshold (ln units).
         contrast_sigma: Per-pixel threshold mismatch σ (ln units).
-        refractory_us: Per-pixel refractory period (µs; §4.3: 0.1–1 ms).
+        refractory_us: Median per-pixel dead time (µs; module doc; the real recordings give
+            1.2–1.7 ms, a bias setting on a real chip; 0 = ESIM's ideal pixel).
+        refractory_spread: σ of the log of the per-pixel dead time (0–1).
         latency_us: Pixel latency added to every DVS event (µs).
-        cutoff_hz: Photoreceptor 3 dB cutoff at full brightness (Hz; §4.3: 100–300 Hz in good
-            light), scaled down in proportion to a pixel's irradiance (v2e); 0 = off (default).
+        jitter_us: σ of the Gaussian timestamp jitter on top of the latency (µs; tens of µs in
+            good light, up to ms in the dark).
+        cutoff_hz: Photoreceptor 3 dB cutoff at irradiance 1 (Hz; §4.3: 100–300 Hz in good
+            light), scaled down in proportion to a pixel's irradiance (v2e); 0 = off.
+        aps_burst_fraction: Fraction of pixels firing one event at each exposure start and end
+            (module doc; 0 = off, the default).
         noise: DVS background activity (default :class:`DvsNoise`).
         imu_rate_hz: IMU sample rate (default 1 kHz).
         sync_pulse_us: Width of the D415 master's sync pulse (µs; ~50 µs, realsense-d415.md §2.2).
@@ -303,12 +344,15 @@ class DavisSimulator:
         exposure_us: int = 4000,
         frame_interval_us: int = 40_000,
         exposure_offset_us: int = 18_000,
-        contrast_on: float = 0.2,
-        contrast_off: float = 0.2,
+        contrast_on: float = 0.22,
+        contrast_off: float = 0.18,
         contrast_sigma: float = 0.03,
-        refractory_us: int = 100,
+        refractory_us: int = 1600,
+        refractory_spread: float = 0.05,
         latency_us: int = 12,
-        cutoff_hz: float = 0.0,
+        jitter_us: float = 10.0,
+        cutoff_hz: float = 300.0,
+        aps_burst_fraction: float = 0.0,
         noise: DvsNoise | None = None,
         imu_rate_hz: float = 1000.0,
         sync_pulse_us: int = 50,
@@ -334,8 +378,13 @@ class DavisSimulator:
         check_range(contrast_off, 0.01, 5.0, name="contrast_off")
         check_range(contrast_sigma, 0.0, 1.0, name="contrast_sigma")
         self.refractory_us = _check_int(refractory_us, "refractory_us")
+        check_range(refractory_spread, 0.0, 1.0, name="refractory_spread")
         self.latency_us = _check_int(latency_us, "latency_us")
+        self.jitter_us = float(check_range(jitter_us, 0.0, 1e4, name="jitter_us"))
         self.cutoff_hz = float(check_range(cutoff_hz, 0.0, 1e5, name="cutoff_hz"))
+        self.aps_burst_fraction = float(
+            check_range(aps_burst_fraction, 0.0, 1.0, name="aps_burst_fraction")
+        )
         self.noise = DvsNoise() if noise is None else noise
         self.sync_pulse_us = _check_int(sync_pulse_us, "sync_pulse_us", low=1)
         self._sync_source = sync_source
@@ -345,27 +394,37 @@ class DavisSimulator:
         )
         self.probe_interval_us = _check_int(probe_interval_us, "probe_interval_us", low=10)
         self.renderer = DavisRenderer(scenario, look=look)
+        #: Sensor shape (rows, columns), the rig's DAVIS camera's (180×240 or 260×346).
+        self.shape: tuple[int, int] = self.renderer.shape
+        self._npix = self.shape[0] * self.shape[1]
+        if self.noise.hot_pixels > self._npix:
+            msg = f"DvsNoise.hot_pixels ({self.noise.hot_pixels}) exceeds the {self._npix} pixels"
+            raise ValidationError(msg)
         self._clock = scenario.clocks["davis"]
         masters = [d for d in scenario.rig.d415 if d.role == "master"]
         self._master = masters[0] if masters else None
 
         rng = scenario.rng("davis")
-        self.c_on = np.maximum(rng.normal(contrast_on, contrast_sigma, _NPIX), 0.01)
-        self.c_off = np.maximum(rng.normal(contrast_off, contrast_sigma, _NPIX), 0.01)
-        self._ref_phase = rng.random(_NPIX)
+        npix = self._npix
+        self.c_on = np.maximum(rng.normal(contrast_on, contrast_sigma, npix), 0.01)
+        self.c_off = np.maximum(rng.normal(contrast_off, contrast_sigma, npix), 0.01)
+        #: Per-pixel dead time (µs): log-normal about ``refractory_us`` (transistor mismatch).
+        self.dead_us = float(self.refractory_us) * np.exp(rng.normal(0.0, refractory_spread, npix))
+        self._ref_phase = rng.random(npix)
         spread = np.log(10.0) * self.noise.spread_decades
-        lognorm = np.exp(rng.normal(-0.5 * spread**2, spread, (2, _NPIX)))  # mean 1
+        lognorm = np.exp(rng.normal(-0.5 * spread**2, spread, (2, npix)))  # mean 1
         self._shot_p = lognorm[0] / lognorm[0].sum()
         self._leak_p = lognorm[1] / lognorm[1].sum()
         self._noise_seed = int(rng.integers(0, 2**62))
-        self._hot = rng.permutation(_NPIX)[: self.noise.hot_pixels].astype(np.int64)
-        self._fpn = 1.0 + rng.normal(0.0, _APS_FPN, DAVIS_SHAPE)
+        self._hot = rng.permutation(npix)[: self.noise.hot_pixels].astype(np.int64)
+        self._fpn = 1.0 + rng.normal(0.0, _APS_FPN, self.shape)
         self._aps_seed = int(rng.integers(0, 2**62))
         self._imu_seed = int(rng.integers(0, 2**62))
         self._accel_bias_g = rng.normal(0.0, 0.01, 3)
         self._gyro_bias_dps = rng.normal(0.0, 0.5, 3)
         self._temp0_c = float(rng.uniform(30.0, 35.0))
         self._temp_phase = float(rng.uniform(0.0, 2.0 * np.pi))
+        self._jitter_seed = int(rng.integers(0, 2**62))
         #: Renders done since construction (for profiling).
         self.render_count = 0
         self.reset(session_ns=reset_session_ns)
@@ -497,7 +556,8 @@ class DavisSimulator:
         pol = np.concatenate([pol, npol])
         order = np.lexsort((idx, t))
         t, idx, pol = t[order], idx[order], pol[order]
-        events = make_events(t, idx % _W, idx // _W, pol)
+        w = self.shape[1]
+        events = make_events(t, idx % w, idx // w, pol)
         done = [e for e in self._done if e.end_us < t1]
         self._done = [e for e in self._done if e.end_us >= t1]
         done = [e for e in done if e.end_us >= t0]
@@ -527,7 +587,8 @@ class DavisSimulator:
         self._u_prev = float(self.device_us(s0))
         # Anywhere strictly between the two firing levels: L - C_on < ref < L + C_off.
         self.ref = self._l_prev - self.c_on + self._ref_phase * (self.c_on + self.c_off)
-        self.last_us = np.full(_NPIX, -np.inf)
+        #: Device time (µs) at which each pixel's reset switch releases it (module doc).
+        self.dead_until = np.full(self._npix, -np.inf)
         self._acc_px = 0.0
         self._last_render_ns = s0
         self._exposures = []
@@ -585,9 +646,11 @@ class DavisSimulator:
                 continue  # scheduled before the pixels' current time (a settings change): lost
             self._exposures.append(
                 _Exposure(
-                    start_us, end_us, start_ns, int(self.session_ns(end_us)), np.zeros(DAVIS_SHAPE)
+                    start_us, end_us, start_ns, int(self.session_ns(end_us)), np.zeros(self.shape)
                 )
             )
+            if self.dvs_enabled and self.aps_burst_fraction > 0:
+                self._events.add(*self._burst(start_us, end_us))
         for e in self._exposures:
             out.extend(t for t in (e.start_ns, e.end_ns) if lo < t <= hi)
         times = np.unique(np.array(out, dtype=np.int64))
@@ -616,9 +679,10 @@ class DavisSimulator:
         if self._readapt and self.dvs_enabled:
             # The DVS came back on: every pixel starts between its firing levels again.
             self.ref = self._l_prev - self.c_on + self._ref_phase * (self.c_on + self.c_off)
+            self.dead_until = np.full(self._npix, -np.inf)
             self._readapt = False
         if self.dvs_enabled:
-            t, idx, pol = _esim_step(
+            t, idx, pol = _dvs_step(
                 self._l_prev,
                 l1,
                 self._u_prev,
@@ -626,13 +690,13 @@ class DavisSimulator:
                 self.ref,
                 self.c_on,
                 self.c_off,
-                self.last_us,
-                float(self.refractory_us),
+                self.dead_until,
+                self.dead_us,
             )
         else:
             t = np.empty(0)
         if t.size:
-            self._events.add(np.floor(t + self.latency_us).astype(np.int64), idx, pol)
+            self._events.add(self._stamp(t, u1), idx, pol)
         # APS: exposures covering [r_prev, t_ns] integrate the trapezoid of the irradiance.
         still: list[_Exposure] = []
         for e in self._exposures:
@@ -646,11 +710,46 @@ class DavisSimulator:
         self._i_prev, self._l_prev, self._u_prev, self._r_ns = img, l1, u1, t_ns
         self._x_prev = x1
 
+    def _stamp(self, t: F64, u1: float) -> I64:
+        """Integer µs timestamps of crossings at float device µs ``t`` (latency and jitter).
+
+        The jitter is a Gaussian of σ ``jitter_us`` on top of the fixed latency, cut so the
+        total latency is never negative (an event is never stamped before its crossing, so
+        events stay within their window). The draws are keyed by the render's end time, so
+        they do not depend on the windowing.
+        """
+        out = t + self.latency_us
+        if self.jitter_us > 0:
+            key = round(u1 * 1000.0)
+            rng = np.random.default_rng([self._jitter_seed, key & 0xFFFFFFFF, (key >> 32) & 0xFFFF])
+            out = t + np.maximum(self.latency_us + rng.normal(0.0, self.jitter_us, t.size), 0.0)
+        stamped: I64 = np.floor(out).astype(np.int64)
+        return stamped
+
+    def _burst(self, start_us: int, end_us: int) -> tuple[I64, I64, npt.NDArray[np.bool_]]:
+        """Events the global-shutter reset and transfer of one exposure cause (module doc).
+
+        At the exposure start (global photodiode reset) and end (global charge transfer) each
+        pixel fires one event with probability ``aps_burst_fraction``, OFF at the start and ON
+        at the end, within the pixel latency plus ``|N(0, 2·jitter)|`` of the edge.
+        """
+        rng = np.random.default_rng([self._jitter_seed ^ 0x5A5A, start_us & 0xFFFFFFFF])
+        ts: list[I64] = []
+        ids: list[I64] = []
+        ps: list[npt.NDArray[np.bool_]] = []
+        for edge_us, on in ((start_us, False), (end_us, True)):
+            idx = np.flatnonzero(rng.random(self._npix) < self.aps_burst_fraction)
+            lag = self.latency_us + np.abs(rng.normal(0.0, 2.0 * self.jitter_us + 1.0, idx.size))
+            ts.append(np.floor(edge_us + lag).astype(np.int64))
+            ids.append(idx.astype(np.int64))
+            ps.append(np.full(idx.size, on))
+        return np.concatenate(ts), np.concatenate(ids), np.concatenate(ps)
+
     def _finish_exposure(self, e: _Exposure) -> ApsExposure:
         mean = e.acc / float(max(e.end_ns - e.start_ns, 1))
         gain = 900.0 * (e.end_us - e.start_us) / _APS_REF_EXPOSURE_US
         rng = np.random.default_rng([self._aps_seed, e.start_us & 0xFFFFFFFF, e.start_us >> 32])
-        cds = gain * mean * self._fpn + rng.normal(0.0, _APS_READ_NOISE, DAVIS_SHAPE)
+        cds = gain * mean * self._fpn + rng.normal(0.0, _APS_READ_NOISE, self.shape)
         return ApsExposure(
             start_us=e.start_us, end_us=e.end_us, cds=np.clip(np.round(cds), 0.0, 1023.0)
         )
@@ -661,12 +760,13 @@ class DavisSimulator:
             return cached
         rng = np.random.default_rng([self._noise_seed, b & 0xFFFFFFFF, (b >> 32) & 0xFFFFFFFF])
         dur_s = _NOISE_BLOCK_US * 1e-6
-        n_shot = int(rng.poisson(self.noise.shot_hz * _NPIX * dur_s))
-        n_leak = int(rng.poisson(self.noise.leak_hz * _NPIX * dur_s))
+        npix = self._npix
+        n_shot = int(rng.poisson(self.noise.shot_hz * npix * dur_s))
+        n_leak = int(rng.poisson(self.noise.leak_hz * npix * dur_s))
         idx = np.concatenate(
             [
-                rng.choice(_NPIX, size=n_shot, p=self._shot_p),
-                rng.choice(_NPIX, size=n_leak, p=self._leak_p),
+                rng.choice(npix, size=n_shot, p=self._shot_p),
+                rng.choice(npix, size=n_leak, p=self._leak_p),
             ]
         ).astype(np.int64)
         n_hot = rng.poisson(self.noise.hot_pixel_hz * dur_s, self._hot.size)

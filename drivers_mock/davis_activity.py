@@ -55,8 +55,9 @@ class ApsExposure:
         start_us: Exposure start, device µs.
         end_us: Exposure end, device µs (``end_us - start_us`` = the configured exposure).
         cds: The frame as libcaer reports it before the 16-bit shift: reset minus signal
-            (correlated double sampling), ADC counts in [0, 1023], shape (180, 240), row 0 =
-            top. The encoder turns it into raw reset/signal reads.
+            (correlated double sampling), ADC counts in [0, 1023], shape (H, W) of the sensor
+            ((180, 240) on a DAVIS240C), row 0 = top. The encoder turns it into raw
+            reset/signal reads.
     """
 
     start_us: int
@@ -64,7 +65,7 @@ class ApsExposure:
     cds: npt.NDArray[np.float64] = field(repr=False)
 
     def __post_init__(self) -> None:
-        check_shape(self.cds, [180, 240], name="ApsExposure.cds")
+        check_shape(self.cds, ["H", "W"], name="ApsExposure.cds")
         if self.end_us < self.start_us:
             msg = f"ApsExposure ends ({self.end_us} µs) before it starts ({self.start_us} µs)"
             raise ValidationError(msg)

@@ -11,6 +11,9 @@ Positions are (F frames, K points, 3) arrays in millimetres; errors are Euclidea
 * MPJAE / RMSPJAE (:func:`quaternion_angle_deg`): the angle between true and estimated unit
   quaternions, ``θ = arccos(2⟨q̂, q⟩² − 1)`` (paper Eq. 11), mean and per-frame RMS.
 * per joint (:func:`per_point_mean`) and per action (:func:`per_group_mean`).
+* Procrustes alignment (:func:`procrustes_align`): per-frame rotation + translation (optionally
+  scale) of a prediction onto the truth, for errors that factor out the global pose (EventCap's
+  AE, "PA-MPJPE").
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from mocaprig.validation import check_finite, check_shape
 __all__ = [
     "PCK_THRESHOLDS_MM",
     "PoseMetrics",
+    "ProcrustesResult",
     "mean_error",
     "pck",
     "pck_curve",
@@ -34,6 +38,7 @@ __all__ = [
     "per_point_mean",
     "point_errors",
     "pose_metrics",
+    "procrustes_align",
     "quaternion_angle_deg",
     "rms_error",
     "rms_per_frame",
@@ -182,4 +187,77 @@ def pose_metrics(
         mpjae_deg=None if ang is None else float(ang.mean()),
         rmspjae_deg=None if ang is None else rms_error(ang),
         frames=int(ej.shape[0]),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class ProcrustesResult:
+    """Per-frame similarity alignments of a prediction onto the truth.
+
+    ``aligned[f] = scales[f] * pred[f] @ rotations[f].T + translations[f]`` for each frame f.
+
+    Attributes:
+        aligned: (F, K, 3) the aligned prediction, in the truth's frame and unit.
+        rotations: (F, 3, 3) proper rotations (det = +1, never a reflection).
+        translations: (F, 3) translations, in the truth's unit.
+        scales: (F,) scale factors (all 1 when the alignment is rigid).
+        with_scale: Whether the scale was estimated.
+    """
+
+    aligned: FloatArray = field(repr=False)
+    rotations: FloatArray = field(repr=False)
+    translations: FloatArray = field(repr=False)
+    scales: FloatArray = field(repr=False)
+    with_scale: bool
+
+
+def procrustes_align(
+    pred: npt.ArrayLike, true: npt.ArrayLike, *, with_scale: bool = False
+) -> ProcrustesResult:
+    """Align each frame of ``pred`` onto ``true`` by the least-squares rotation and translation
+    (and, with ``with_scale``, one scale factor): per-frame Procrustes analysis, as before a
+    "PA-MPJPE".
+
+    The rotation is a proper rotation (reflections are excluded), found on the centred points by
+    :meth:`scipy.spatial.transform.Rotation.align_vectors` (Kabsch); the scale is then
+    ``Σ⟨t_c, R p_c⟩ / Σ|p_c|²`` (Umeyama). Inputs are not modified.
+
+    Args:
+        pred: (F, K, 3) predicted points.
+        true: (F, K, 3) true points, same unit.
+        with_scale: Also fit a scale factor per frame.
+
+    Raises:
+        ValidationError: shapes differ or are not (F, K, 3), K < 3, non-finite values, or a
+            predicted frame whose points all coincide.
+    """
+    # imported here: scipy.spatial is heavy and only this function needs it
+    from scipy.spatial.transform import Rotation
+
+    p = np.asarray(check_finite(check_shape(pred, ["F", "K", 3], name="pred")), np.float64)
+    t = np.asarray(check_finite(check_shape(true, list(p.shape), name="true")), np.float64)
+    if p.shape[1] < 3:
+        msg = f"Procrustes needs at least 3 points per frame, got {p.shape[1]}"
+        raise ValidationError(msg)
+    p_mean = p.mean(axis=1, keepdims=True)
+    t_mean = t.mean(axis=1, keepdims=True)
+    pc, tc = p - p_mean, t - t_mean
+    spread = np.sum(pc * pc, axis=(1, 2))
+    tiny = spread <= 1e-24 * np.maximum(np.sum(tc * tc, axis=(1, 2)), 1.0)
+    if np.any(tiny):
+        bad = np.flatnonzero(tiny)
+        msg = f"pred frames {bad[:5].tolist()} have all points at one place; cannot align them"
+        raise ValidationError(msg)
+    n = p.shape[0]
+    rot = np.empty((n, 3, 3))
+    for f in range(n):
+        # align_vectors(a, b) minimises Σ|a_i − R b_i|²; it only returns proper rotations
+        r, _ = Rotation.align_vectors(tc[f], pc[f])
+        rot[f] = r.as_matrix()
+    rp = np.einsum("fij,fkj->fki", rot, pc)
+    scale = np.sum(tc * rp, axis=(1, 2)) / spread if with_scale else np.ones(n)
+    aligned = scale[:, None, None] * rp + t_mean
+    trans = t_mean[:, 0, :] - scale[:, None] * np.einsum("fij,fj->fi", rot, p_mean[:, 0, :])
+    return ProcrustesResult(
+        aligned=aligned, rotations=rot, translations=trans, scales=scale, with_scale=with_scale
     )

@@ -81,6 +81,7 @@ from mocaprig.process.democap.instants import (
 from mocaprig.process.democap.live import LiveCamera, LivePipeline
 from mocaprig.process.democap.simdata import CAPTURE_BOX_M
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
+from mocaprig.process.scene import points_scene
 
 __all__ = [
     "CLOUD_TOPIC",
@@ -622,61 +623,7 @@ def write_replay_c3d(result: ReplayResult, path: str | Path, *, overwrite: bool 
 
 _MARKER_RGBA: Final = (1.0, 0.55, 0.1, 1.0)
 _JOINT_RGBA: Final = (0.2, 0.5, 1.0, 1.0)
-_BONE_RGBA: Final = (0.9, 0.9, 0.9, 1.0)
 _CLOUD_RGBA: Final = (0.6, 0.6, 0.6, 0.6)
-
-
-def _scene(
-    entity_id: str,
-    frame_id: str,
-    t_ns: int,
-    points_m: F64,
-    size_m: float,
-    rgba: tuple[float, float, float, float],
-    metadata: Mapping[str, str],
-    *,
-    names: Sequence[str] = (),
-    bones: Sequence[tuple[int, int]] = (),
-) -> SceneUpdateMsg:
-    """One entity of spheres (and labels, bones) as a ``foxglove.SceneUpdate``."""
-    from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
-    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-
-    upd = SceneUpdate()
-    ent = upd.entities.add()
-    ent.timestamp.FromNanoseconds(int(t_ns))
-    ent.frame_id = frame_id
-    ent.id = entity_id
-    for k, v in metadata.items():
-        kv = ent.metadata.add()
-        kv.key, kv.value = k, v
-    for p in points_m:
-        s = ent.spheres.add()
-        s.pose.position.x, s.pose.position.y, s.pose.position.z = (float(v) for v in p)
-        s.pose.orientation.w = 1.0
-        s.size.x = s.size.y = s.size.z = size_m
-        s.color.r, s.color.g, s.color.b, s.color.a = rgba
-    for name, p in zip(names, points_m, strict=False):
-        tx = ent.texts.add()
-        tx.pose.position.x, tx.pose.position.y, tx.pose.position.z = (float(v) for v in p)
-        tx.pose.orientation.w = 1.0
-        tx.billboard = True
-        tx.font_size = 12.0
-        tx.scale_invariant = True
-        tx.color.r = tx.color.g = tx.color.b = tx.color.a = 1.0
-        tx.text = name
-    if bones:
-        ln = ent.lines.add()
-        ln.type = LinePrimitive.Type.LINE_LIST
-        ln.pose.orientation.w = 1.0
-        ln.thickness = 3.0
-        ln.scale_invariant = True
-        ln.color.r, ln.color.g, ln.color.b, ln.color.a = _BONE_RGBA
-        for a, b in bones:
-            for q in (points_m[a], points_m[b]):
-                pt = ln.points.add()
-                pt.x, pt.y, pt.z = (float(v) for v in q)
-    return SceneUpdateMsg(upd)
 
 
 def marker_scene(
@@ -685,7 +632,7 @@ def marker_scene(
     """The labelled markers of one instant, ``(53, 3)`` world m, as a scene update (14 mm
     spheres; ``names`` in the metadata, in sphere order)."""
     meta = {"names": ",".join(MARKER_NAMES), **info}
-    return _scene("markers", frame_id, t_ns, markers_m, 0.014, _MARKER_RGBA, meta)
+    return points_scene("markers", frame_id, t_ns, markers_m, 0.014, _MARKER_RGBA, meta)
 
 
 def skeleton_scene(
@@ -696,7 +643,7 @@ def skeleton_scene(
     bones = [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
     meta = {"names": ",".join(DEMOCAP_JOINTS), **info}
     joints = list(DEMOCAP_JOINTS)
-    return _scene(
+    return points_scene(
         "skeleton", frame_id, t_ns, joints_m, 0.03, _JOINT_RGBA, meta, names=joints, bones=bones
     )
 
@@ -782,7 +729,7 @@ def write_scene_mcap(
                 if clouds is not None:
                     pts = np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3)
                     msgs.append(
-                        (h["cloud"], _scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info))
+                        (h["cloud"], points_scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info))
                     )
                 for handle, scene in msgs:
                     rec.put_wait(handle, scene, log_time_ns=t, sequence=i)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from mocaprig.calib import camera_model, charuco, registration, time_align
@@ -12,8 +13,11 @@ from mocaprig.calib.camera_model import (
     DEFAULT_MIN_DEPTH_M,
     distort_normalized,
     project_camera,
+    project_camera_torch,
     project_points,
+    project_points_torch,
     world_to_camera,
+    world_to_camera_torch,
 )
 from mocaprig.errors import ValidationError
 
@@ -199,3 +203,63 @@ def test_calib_modules_share_the_one_projection() -> None:
     np.testing.assert_array_equal(got, want)
     assert np.isnan(got[0, 0]).all()
     assert np.isfinite(got.reshape(-1, 2)[1:]).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_torch_twin_matches_numpy_projection(seed: int) -> None:
+    rng = np.random.default_rng(100 + seed)
+    K, dist, T = _random_camera(rng)
+    K[0, 1] = 2.0  # the skew term too
+    pw = _points_in_front(rng, T, 400)
+    uv, z = project_points(pw, T, K, dist)
+    t = torch.from_numpy
+    uv_t, z_t = project_points_torch(t(pw), t(T), t(K), t(dist))
+    assert uv_t.dtype == torch.float64
+    np.testing.assert_allclose(uv_t.numpy(), uv, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(z_t.numpy(), z, rtol=0, atol=1e-12)
+    no_dist, _ = project_points_torch(t(pw), t(T), t(K), None)
+    np.testing.assert_allclose(no_dist.numpy(), project_points(pw, T, K)[0], rtol=0, atol=1e-9)
+    pc = world_to_camera(pw, T)
+    np.testing.assert_allclose(world_to_camera_torch(t(pw), t(T)).numpy(), pc, atol=1e-12)
+
+
+def test_torch_twin_masks_points_behind_the_camera_like_numpy() -> None:
+    rng = np.random.default_rng(7)
+    K, dist, _ = _random_camera(rng)
+    pc = np.array([[0.1, 0.2, 2.0], [0.1, 0.2, 0.0], [0.1, 0.2, -2.0], [0.1, 0.2, 0.03]])
+    t = torch.from_numpy
+    for limit in (DEFAULT_MIN_DEPTH_M, 0.05, None):
+        want = project_camera(pc[[0, 2, 3]], K, dist, min_depth_m=limit)
+        got = project_camera_torch(t(pc[[0, 2, 3]]), t(K), t(dist), min_depth_m=limit).numpy()
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)  # NaN where numpy has NaN
+    # Masked points get zero gradients, never NaN ones.
+    x = t(pc).clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(project_camera_torch(x, t(K), t(dist)).nan_to_num(0.0).sum(), x)
+    assert torch.isfinite(grad).all()
+    assert (grad[1:3] == 0).all()
+    assert (grad[0] != 0).any()
+
+
+def test_torch_twin_gradients_match_finite_differences() -> None:
+    rng = np.random.default_rng(8)
+    K, dist, T = _random_camera(rng)
+    pw = torch.from_numpy(_points_in_front(rng, T, 5)).requires_grad_(True)
+    k = torch.from_numpy(K).requires_grad_(True)
+    d = torch.from_numpy(dist).requires_grad_(True)
+    t_wc = torch.from_numpy(T)
+
+    def uv_of(p: torch.Tensor, k: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        return project_points_torch(p, t_wc, k, d)[0]
+
+    assert torch.autograd.gradcheck(uv_of, (pw, k, d))
+
+
+def test_torch_twin_rejects_wrong_shapes() -> None:
+    with pytest.raises(ValidationError, match="points_cam"):
+        project_camera_torch(torch.zeros(4, 2), torch.eye(3))
+    with pytest.raises(ValidationError, match="K must"):
+        project_camera_torch(torch.ones(4, 3), torch.eye(4))
+    with pytest.raises(ValidationError, match="distortion"):
+        project_camera_torch(torch.ones(4, 3), torch.eye(3), torch.zeros(4))
+    with pytest.raises(ValidationError, match="T_world_cam"):
+        world_to_camera_torch(torch.ones(4, 3), torch.eye(3))

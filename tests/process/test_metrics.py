@@ -15,6 +15,7 @@ from mocaprig.process.metrics import (
     per_point_mean,
     point_errors,
     pose_metrics,
+    procrustes_align,
     quaternion_angle_deg,
     rms_error,
 )
@@ -110,3 +111,71 @@ def test_pose_metrics_summary() -> None:
     assert m.mpjae_deg == pytest.approx(5.0)
     assert m.rmspjae_deg == pytest.approx((0.0 + 10.0) / 2)  # per-frame RMS, then mean
     assert m.frames == 2
+
+
+def _random_rigid(seed: int, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random points (F, 15, 3) mm, proper rotations (F, 3, 3) and translations (F, 3) mm."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(scale=300.0, size=(frames, 15, 3))
+    rot = Rotation.random(frames, rng=rng).as_matrix()
+    trans = rng.normal(scale=1000.0, size=(frames, 3))
+    return pts, rot, trans
+
+
+def test_procrustes_recovers_a_known_rigid_transform_exactly() -> None:
+    pts, rot, trans = _random_rigid(0, 5)
+    true = np.einsum("fij,fkj->fki", rot, pts) + trans[:, None, :]
+    res = procrustes_align(pts, true)
+    np.testing.assert_allclose(res.rotations, rot, atol=1e-12)
+    np.testing.assert_allclose(res.translations, trans, atol=1e-9)
+    np.testing.assert_allclose(res.aligned, true, atol=1e-9)
+    np.testing.assert_array_equal(res.scales, np.ones(5))
+    assert not res.with_scale
+
+
+def test_procrustes_with_scale_recovers_the_scale() -> None:
+    pts, rot, trans = _random_rigid(1, 3)
+    true = 0.8 * np.einsum("fij,fkj->fki", rot, pts) + trans[:, None, :]
+    res = procrustes_align(pts, true, with_scale=True)
+    np.testing.assert_allclose(res.scales, 0.8, rtol=1e-12)
+    np.testing.assert_allclose(res.aligned, true, atol=1e-9)
+    rigid = procrustes_align(pts, true)
+    assert np.abs(rigid.aligned - true).max() > 1.0  # without scale a residual must remain
+
+
+def test_procrustes_never_returns_a_reflection_for_a_mirrored_pose() -> None:
+    pts, _, _ = _random_rigid(2, 4)
+    mirrored = pts * np.array([-1.0, 1.0, 1.0])
+    res = procrustes_align(pts, mirrored)
+    np.testing.assert_allclose(np.linalg.det(res.rotations), 1.0, atol=1e-12)
+    # a reflection would fit exactly; a rotation cannot
+    assert np.abs(res.aligned - mirrored).max() > 1.0
+
+
+def test_procrustes_does_not_modify_its_inputs() -> None:
+    pts, rot, trans = _random_rigid(3, 2)
+    true = np.einsum("fij,fkj->fki", rot, pts) + trans[:, None, :]
+    pts0, true0 = pts.copy(), true.copy()
+    procrustes_align(pts, true, with_scale=True)
+    np.testing.assert_array_equal(pts, pts0)
+    np.testing.assert_array_equal(true, true0)
+
+
+def test_procrustes_rejects_fewer_than_three_points() -> None:
+    with pytest.raises(ValidationError, match="at least 3 points"):
+        procrustes_align(np.zeros((1, 2, 3)), np.ones((1, 2, 3)))
+
+
+def test_procrustes_rejects_a_frame_with_all_points_coincident() -> None:
+    true = np.random.default_rng(4).normal(size=(2, 5, 3))
+    pred = true.copy()
+    pred[1] = 7.0
+    with pytest.raises(ValidationError, match=r"pred frames \[1\]"):
+        procrustes_align(pred, true)
+
+
+def test_procrustes_rejects_mismatched_shapes() -> None:
+    with pytest.raises(ValidationError, match="true has the wrong shape"):
+        procrustes_align(np.zeros((2, 5, 3)), np.zeros((2, 4, 3)))
