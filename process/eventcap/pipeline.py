@@ -16,7 +16,8 @@ A batch spans two consecutive APS frames ``a`` and ``b``: tracking frames ``f = 
    (``continuity``): given ``start_pose`` (``run_take`` passes the previous batch's last pose,
    which is this batch's frame 0), S_0 starts there instead of a fresh fit of detection ``a``
    and is tied to it by keypoint pseudo-detections beside detection ``a``, so detection noise
-   is averaged along the take rather than met afresh at every APS frame.
+   is averaged along the take rather than met afresh at every APS frame; a detection whose
+   left/right mirror agrees better with that pose is mirrored (``swap_check``).
 4. **Batch fit** (:mod:`.batch_fit`): E_cor + E_2D + E_3D + E_temp; E_cor's surface points are
    re-associated on the template rasterised at the current poses between rounds
    (:mod:`.raster`). ``association="trajectory"`` (default) looks each trajectory up once, at
@@ -33,12 +34,13 @@ Threads: the solvers' tensors are small, so :func:`run_batch` runs torch on
 
 Measured (issue 15; simulated 4 s takes of CMU 02_04 jump, 02_05 strike, 05_02 dance, seeds
 1–3, realistic DAVIS simulator, synthetic detector with default noise; 8 chained batches from
-each take's fastest window; AE on every 10th frame, 15 body joints): AE 39.8 mm vs 43.8 mm
-``*_linear`` (0.91), ``*_all`` 38.7 mm; absolute MPJPE 73.6 vs 92.3 mm. Most of the remaining
-AE is batches where the detection at one APS frame fits a wrong body (``*_linear`` > 100 mm
-there too); without them 24.9 vs 27.4 mm. Against the same protocol, batch continuity and
-refinement gave most of the gain (3 takes: no continuity, no refinement 0.93; with both 0.87);
-per-trajectory association matched per-frame association within 0.4 mm at a tenth of its time.
+each take's fastest window; AE on every 10th frame, 15 body joints): AE 29.8 mm vs 43.8 mm
+``*_linear`` (0.68), ``*_all`` 38.7 mm; absolute MPJPE 65.7 vs 92.3 mm. Without the
+``swap_check`` (undoing whole-body left/right swaps of a detection against the handed-on
+pose) 39.8 mm (0.91). Batch continuity and
+refinement gave most of the earlier gain (3 takes: no continuity, no refinement 0.93; with both
+0.87); per-trajectory association matched per-frame association within 0.4 mm at a tenth of its
+time.
 Speed on the 2-core machine (benchmarks/eventcap_batch.py): 4.9–5.8 s per ordinary batch
 (batch fit ~2 s, refinement ~2.5 s), up to 12 s where the ``jump_check_mm`` refit runs.
 
@@ -120,6 +122,18 @@ Continuity = Literal["off", "prior", "replace"]
 Association = Literal["per_frame", "trajectory"]
 
 _PELVIS = EVENTCAP_KEYPOINTS.index("pelvis")
+# A mirrored detection replaces the detector's only when it is this much closer.
+_SWAP_MARGIN = 0.8
+# Left/right partner of each keypoint slot (itself on the centre line).
+_MIRROR = np.array(
+    [
+        EVENTCAP_KEYPOINTS.index(
+            n.replace("right_", "\0").replace("left_", "right_").replace("\0", "left_")
+        )
+        for n in EVENTCAP_KEYPOINTS
+    ],
+    dtype=np.int64,
+)
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -179,6 +193,9 @@ class EventcapOptions:
         jump_check_mm: With a ``start_pose``: when the fresh fit of frame ``b`` moves the
             pelvis-relative body keypoints by more than this (mean, mm) from it, the batch is
             also fitted from the held pose and the lower final energy wins (None: never).
+        swap_check: With a ``start_pose``: replace a detection by its left/right mirror when
+            the mirror agrees better with the pose handed on (whole-body swaps are a common
+            detector failure that no single-frame energy can see).
         torch_threads: torch intra-op threads while the batch runs (restored afterwards; None
             leaves torch's setting). The solvers' tensors are small (33×33 blocks), so extra
             threads only spin against each other and other jobs: one thread measured several
@@ -201,6 +218,7 @@ class EventcapOptions:
     continuity: Continuity = "prior"
     continuity_weight: float = 1.0
     jump_check_mm: float | None = 150.0
+    swap_check: bool = True
     torch_threads: int | None = 1
     tracking: TrackingOptions = field(default_factory=TrackingOptions)
     batch: BatchFitOptions = field(default_factory=BatchFitOptions)
@@ -290,6 +308,70 @@ def _body_shift_mm(pose_a: F64, pose_b: F64, shape: BodyShape) -> float:
     kp = eventcap_keypoints(forward_kinematics(np.stack([pose_a, pose_b]), shape), shape)
     rel = kp[:, :NUM_BODY_KEYPOINTS] - kp[:, _PELVIS : _PELVIS + 1]
     return float(1000.0 * np.linalg.norm(rel[1] - rel[0], axis=-1).mean())
+
+
+def _mirrored(det: FrameDetections) -> FrameDetections:
+    """``det`` with every left/right keypoint pair exchanged (2D, confidences and 3D)."""
+    return FrameDetections(
+        frame=det.frame,
+        keypoints2d_px=np.asarray(det.keypoints2d_px)[_MIRROR],
+        confidence=np.asarray(det.confidence)[_MIRROR],
+        keypoints3d_mm=(
+            None if det.keypoints3d_mm is None else np.asarray(det.keypoints3d_mm)[_MIRROR]
+        ),
+        confidence3d=np.asarray(det.confidence3d)[_MIRROR],
+    )
+
+
+def _reprojection_px(
+    pose: F64, det: FrameDetections, shape: BodyShape, camera: EventCamera
+) -> float:
+    """Confidence-weighted mean 2D distance (px) between a pose's keypoints and ``det``."""
+    uv, _ = camera.project(eventcap_keypoints(forward_kinematics(pose, shape), shape))
+    w = np.asarray(det.confidence, dtype=np.float64)
+    d = np.linalg.norm(uv - np.asarray(det.keypoints2d_px), axis=-1)
+    return float((w * d).sum() / max(float(w.sum()), 1e-9))
+
+
+def _unswap(
+    det: list[FrameDetections],
+    pose_a: F64,
+    shape: BodyShape,
+    camera: EventCamera,
+    options: BatchFitOptions,
+) -> list[FrameDetections]:
+    """Undo whole-body left/right swaps of the real detections against the handed-on pose.
+
+    A detector that exchanges every left/right pair gives a mirrored body that fits its
+    keypoints as well as the true one, so the detection's own energy cannot tell them apart;
+    the pose handed on (frame ``a``, one APS interval earlier) can. Detection ``a`` (at that
+    very pose) is flagged when its mirror reprojects closer to it; detection ``b`` is fitted
+    both ways from ``pose_a`` and flagged when the mirror's body moved less from ``pose_a``.
+    Flagged detections are mirrored, except when both are flagged: two swaps in a row are
+    far less likely than a handed-on pose that is itself mirrored, so the detections stand.
+    ``det`` is ``[pose prior, (detection a), detection b]``; a new list is returned.
+    """
+    out = list(det)
+    flagged: list[int] = []
+    for k in range(1, len(out) - 1):
+        near = _reprojection_px(pose_a, out[k], shape, camera)
+        if _reprojection_px(pose_a, _mirrored(out[k]), shape, camera) < _SWAP_MARGIN * near:
+            flagged.append(k)
+    last = len(out) - 1
+    fits = [
+        fit_frame(d, camera, shape, initial_pose=pose_a, options=options)
+        for d in (out[last], _mirrored(out[last]))
+    ]
+    shifts = [_body_shift_mm(pose_a, f.pose, shape) for f in fits]
+    if shifts[1] < _SWAP_MARGIN * shifts[0]:
+        flagged.append(last)
+    if len(flagged) > 1:
+        _log.info("both detections disagree with the pose handed on: keeping them as given")
+        return out
+    for k in flagged:
+        _log.info("frame %d: detection mirrored (left/right swap)", out[k].frame)
+        out[k] = _mirrored(out[k])
+    return out
 
 
 def _pose_prior(pose: F64, shape: BodyShape, camera: EventCamera, weight: float) -> FrameDetections:
@@ -621,9 +703,11 @@ def _run_batch(
         det = [prior, det[1]] if opt.continuity == "replace" else [prior, *det]
     else:
         pose_a = fit_frame(det[0], camera, shape, initial_pose=start_pose, options=opt.batch).pose
+    chained = start_pose is not None and opt.continuity != "off"
+    if chained and opt.swap_check:
+        det = _unswap(det, pose_a, shape, camera, opt.batch)
     end_b = fit_frame(det[-1], camera, shape, initial_pose=pose_a, options=opt.batch)
     init = interpolate_poses(pose_a, end_b.pose, n=n)
-    chained = start_pose is not None and opt.continuity != "off"
     # A fresh fit of one noisy detection can land on a mirrored or turned body (swapped
     # left/right detections); when frame b's body shape is implausibly far from the pose
     # handed on, also fit from the held pose and let the events decide (lower energy wins).

@@ -24,6 +24,9 @@ from mocaprig.process.eventcap.pipeline import (
     EventcapOptions,
     _associate_trajectories,
     _body_shift_mm,
+    _mirrored,
+    _pose_prior,
+    _unswap,
     frame_detections,
     run_batch,
 )
@@ -217,6 +220,40 @@ def test_body_shift_flags_a_turned_body_but_not_a_moved_one(start_pose: np.ndarr
     ).as_rotvec()
     assert _body_shift_mm(start_pose, moved, shape) < 1e-6
     assert _body_shift_mm(start_pose, turned, shape) > 150.0
+
+
+def test_unswap_undoes_one_left_right_swap_and_keeps_true_detections(
+    batch: _Batch, start_pose: npt.NDArray[np.float64]
+) -> None:
+    n = (batch.frame_b.t_us - batch.frame_a.t_us) // 1000
+    true = [frame_detections(batch.detection_a, 0), frame_detections(batch.detection_b, n)]
+    prior = _pose_prior(start_pose, batch.shape, batch.camera, 1.0)
+    swapped = [_mirrored(d) for d in true]
+    assert not np.allclose(swapped[1].keypoints2d_px, true[1].keypoints2d_px)
+    opt = EventcapOptions().batch
+    for given in ([prior, *true], [prior, true[0], swapped[1]], [prior, swapped[0], true[1]]):
+        out = _unswap(given, start_pose, batch.shape, batch.camera, opt)
+        assert out[0] is prior
+        for got, want in zip(out[1:], true, strict=True):
+            np.testing.assert_allclose(got.keypoints2d_px, want.keypoints2d_px)
+            assert got.keypoints3d_mm is not None
+            assert want.keypoints3d_mm is not None
+            np.testing.assert_allclose(got.keypoints3d_mm, want.keypoints3d_mm)
+            np.testing.assert_allclose(got.confidence, want.confidence)
+    assert given[1] is swapped[0]  # the input list is not modified
+
+
+def test_unswap_trusts_two_detections_that_both_disagree_with_the_handed_on_pose(
+    batch: _Batch, start_pose: npt.NDArray[np.float64]
+) -> None:
+    # Both detections mirrored against the handed-on pose is what a mirrored hand-on looks
+    # like (two swaps in a row are rare): the detections stand.
+    n = (batch.frame_b.t_us - batch.frame_a.t_us) // 1000
+    true = [frame_detections(batch.detection_a, 0), frame_detections(batch.detection_b, n)]
+    given = [_pose_prior(start_pose, batch.shape, batch.camera, 1.0)]
+    given += [_mirrored(d) for d in true]
+    out = _unswap(given, start_pose, batch.shape, batch.camera, EventcapOptions().batch)
+    assert all(got is want for got, want in zip(out, given, strict=True))
 
 
 def test_batch_rejects_frames_not_whole_steps_apart(batch: _Batch) -> None:
