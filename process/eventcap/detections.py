@@ -407,7 +407,28 @@ _OPENPOSE_SETS: Mapping[int, KeypointSet] = {25: "body25", 18: "coco18"}
 _FRAME_NUMBER = re.compile(r"(\d+)_keypoints\.json$")
 
 
-class OpenPoseJsonDetections:
+class _TableDetections:
+    """A detector read from a file: every detection known up front, looked up by time."""
+
+    _source: str
+    _table: _TimeTable
+
+    @property
+    def source(self) -> str:
+        """The label of the file's detections (e.g. ``"openpose-body25"``, ``"coco17"``)."""
+        return self._source
+
+    @property
+    def times_us(self) -> npt.NDArray[np.int64]:
+        """The APS times (µs) the file has a detection for, sorted."""
+        return self._table.times_us
+
+    def detect(self, t_us: int, image: npt.NDArray[Any] | None = None) -> Detection:
+        """The detection at ``t_us``; ``image`` is ignored (the file already holds them)."""
+        return self._table.get(int(t_us))
+
+
+class OpenPoseJsonDetections(_TableDetections):
     """Detections from a folder of OpenPose ``--write_json`` files (``*_keypoints.json``).
 
     Each file holds ``{"people": [{"pose_keypoints_2d": [x0, y0, c0, x1, ...]}, ...]}``. The
@@ -518,22 +539,8 @@ class OpenPoseJsonDetections:
         j2, c2, _ = convert_keypoints(best[1], np.clip(best[2], 0.0, 1.0), best[3])
         return j2, c2, best[3]
 
-    @property
-    def source(self) -> str:
-        """``"openpose-body25"`` or ``"openpose-coco18"``."""
-        return self._source
 
-    @property
-    def times_us(self) -> npt.NDArray[np.int64]:
-        """The APS times (µs) that have a file, sorted."""
-        return self._table.times_us
-
-    def detect(self, t_us: int, image: npt.NDArray[Any] | None = None) -> Detection:
-        """The detection of the frame at ``t_us``; ``image`` is ignored."""
-        return self._table.get(int(t_us))
-
-
-class CocoKeypointDetections:
+class CocoKeypointDetections(_TableDetections):
     """Detections from a COCO keypoint file (17 keypoints), results or annotations.
 
     A *results* file is a list of ``{"image_id", "keypoints": [x, y, score, ...], "score"}``
@@ -597,22 +604,8 @@ class CocoKeypointDetections:
             raise RecordingError(msg)
         self._table = _TimeTable(by_time, tolerance_us=tolerance_us, what=f"COCO file {path}")
 
-    @property
-    def source(self) -> str:
-        """``"coco17"``."""
-        return self._source
 
-    @property
-    def times_us(self) -> npt.NDArray[np.int64]:
-        """The APS times (µs) with an image id, sorted."""
-        return self._table.times_us
-
-    def detect(self, t_us: int, image: npt.NDArray[Any] | None = None) -> Detection:
-        """The detection of the image at ``t_us``; ``image`` is ignored."""
-        return self._table.get(int(t_us))
-
-
-class JsonDetections:
+class JsonDetections(_TableDetections):
     """Detections from our own one-file-per-sequence JSON (written by
     :func:`write_detections_json`; eventcap-method.md §3.2)::
 
@@ -694,20 +687,6 @@ class JsonDetections:
             raise RecordingError(msg)
         j2o, co, j3o = convert_keypoints(xy, c, kset, joints3d=p3)
         return Detection(int(fr["t_us"]), j2o, co, source=source, joints3d_root_rel_mm=j3o)
-
-    @property
-    def source(self) -> str:
-        """The file's ``source`` label."""
-        return self._source
-
-    @property
-    def times_us(self) -> npt.NDArray[np.int64]:
-        """The APS times (µs) in the file, sorted."""
-        return self._table.times_us
-
-    def detect(self, t_us: int, image: npt.NDArray[Any] | None = None) -> Detection:
-        """The detection at ``t_us``; ``image`` is ignored."""
-        return self._table.get(int(t_us))
 
 
 def write_detections_json(
