@@ -10,9 +10,10 @@ the export to files (:mod:`mocaprig.acquire.export`); device modules are importe
 from __future__ import annotations
 
 import argparse
+import datetime
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from mocaprig.acquire.export import ExportFormat, ExportResult, export_topic
 from mocaprig.acquire.record_session import run_recording
@@ -20,9 +21,13 @@ from mocaprig.acquire.recorder import StreamSource
 from mocaprig.acquire.rpg_text import import_events_txt
 from mocaprig.cli import add_json_flag, emit_json
 
+if TYPE_CHECKING:
+    from mocaprig.acquire.recording import RecordingInfo, TimeBase
+
 __all__ = [
     "export",
     "import_events",
+    "info_layout",
     "record",
     "recording_info",
     "recover_command",
@@ -112,6 +117,8 @@ def recording_info(path: Path, *, as_json: bool) -> int:
         f"{inf.scan.bad_chunks} bad, truncated: {inf.scan.truncated} "
         f"({inf.scan.bytes_unread} bytes unread)"
     )
+    if inf.mixed_time_bases:
+        print(_mixed_time_bases_line(inf))
     print(f"  {'topic':<36} {'schema':<26} {'msgs':>8} {'rate Hz':>9} {'drops':>6} {'gaps':>6}")
     for s in inf.streams:
         drops = "?" if s.drops is None else str(s.drops)
@@ -124,6 +131,45 @@ def recording_info(path: Path, *, as_json: bool) -> int:
     for a in inf.attachments:
         print(f"  attachment: {a}")
     return 0
+
+
+def info_layout(path: Path, out: Path | None, *, overwrite: bool, as_json: bool) -> int:
+    """``mocaprig info FILE --layout [OUT.json]``: write the Foxglove layout for the file
+    (:func:`mocaprig.acquire.layout.write_layout`) and print its path."""
+    from mocaprig.acquire.layout import write_layout
+
+    res = write_layout(path, out, overwrite=overwrite)
+    if as_json:
+        emit_json({"layout": str(res.path), "use": res.use, "panels": res.panels})
+    else:
+        print(f"{res.path}: {res.use} layout, {res.panels} panels")
+    return 0
+
+
+def _clock_words(name: str) -> str:
+    return "Unix time" if name == "unix" else "a relative clock"
+
+
+def _span_words(b: TimeBase) -> str:
+    span = f"{(b.end_ns - b.start_ns) / 1e9:.3f} s"
+    if b.name == "unix":
+        start = datetime.datetime.fromtimestamp(b.start_ns / 1e9, tz=datetime.UTC)
+        return f"from {start:%Y-%m-%d %H:%M:%S} UTC, {span}"
+    return f"{b.start_ns / 1e9:.3f} .. {b.end_ns / 1e9:.3f} s"
+
+
+def _mixed_time_bases_line(inf: RecordingInfo) -> str:
+    """The warning ``mocaprig info`` prints for a file whose streams are on different clocks."""
+    main = inf.time_bases[0]
+    parts = "; ".join(
+        f"{', '.join(b.topics)} on {_clock_words(b.name)} ({_span_words(b)})"
+        for b in inf.time_bases
+    )
+    return (
+        f"  WARNING: mixed time bases (a file written before one clock per file): {parts}; "
+        f"the duration is that of {_clock_words(main.name)} ({', '.join(main.topics)}); "
+        "times of the other streams cannot be compared with it"
+    )
 
 
 def recover_command(src: Path, out: Path, *, as_json: bool) -> int:
@@ -168,12 +214,20 @@ def import_events(
     height: int | None,
     serial: str = "imported",
     packet_us: int = 10_000,
+    epoch_ns: int = 0,
     as_json: bool = False,
 ) -> int:
     """``mocaprig import-events``: an RPG events text file into a recording
-    (:func:`mocaprig.acquire.rpg_text.import_events_txt`)."""
+    (:func:`mocaprig.acquire.rpg_text.import_events_txt`), every message on the file's clock
+    shifted by ``epoch_ns``."""
     imp = import_events_txt(
-        src, out, width=width, height=height, serial=serial, packet_us=packet_us
+        src,
+        out,
+        width=width,
+        height=height,
+        serial=serial,
+        packet_us=packet_us,
+        epoch_ns=epoch_ns,
     )
     if as_json:
         emit_json({"output": str(out), "events": imp.events, "packets": imp.packets})
@@ -283,11 +337,39 @@ def register_info(subparsers: Any) -> None:
         subparsers,
         "info",
         "summarise a recording: streams, counts, rates, drops, counter gaps, chunks",
-        "  mocaprig info session.mcap\n  mocaprig info crashed.mcap --json\n",
+        "  mocaprig info session.mcap\n  mocaprig info crashed.mcap --json\n"
+        "\nThe duration and times are those of one clock. A file whose streams are on different\n"
+        "clocks (Unix time and a relative clock; older imports) gets a WARNING line naming the\n"
+        "streams on each, and mixed_time_bases / time_bases in --json.\n"
+        "\n--layout writes a Foxglove layout for the file instead of the summary: a recording\n"
+        "check (D415 IR + depth per camera, DAVIS frames, drops, frame counters, sync pulses,\n"
+        "recorder status and log), a calibration review (a recording with calibration.toml\n"
+        "attached), a DeMoCap replay or an EventCap run (3D panel), with the file's own\n"
+        "topics. Default OUT: FILE without .mcap + .layout.json, next to it. In Foxglove:\n"
+        "open the file, then Layouts -> Import from file... and pick OUT.json.\n"
+        "  mocaprig info session.mcap --layout\n"
+        "  mocaprig info results.mcap --layout replay.json --overwrite\n",
     )
     p.add_argument("file", type=Path, help="recording (.mcap), finished or crashed")
+    p.add_argument(
+        "--layout",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="OUT.json",
+        help="write the Foxglove layout for FILE (default OUT: FILE.layout.json next to it)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="--layout: replace OUT.json")
     add_json_flag(p)
-    p.set_defaults(func=lambda a: recording_info(a.file, as_json=a.json))
+    p.set_defaults(
+        func=lambda a: (
+            recording_info(a.file, as_json=a.json)
+            if a.layout is None
+            else info_layout(
+                a.file, Path(a.layout) if a.layout else None, overwrite=a.overwrite, as_json=a.json
+            )
+        )
+    )
 
 
 def register_recover(subparsers: Any) -> None:
@@ -346,16 +428,32 @@ def register_import_events(subparsers: Any) -> None:
         "import-events",
         "import an RPG events text file (t x y p; optional 'width height' first line)",
         "  mocaprig import-events events.txt --out events.mcap\n"
-        "  mocaprig import-events events.txt --out e.mcap --width 346 --height 260\n",
+        "  mocaprig import-events events.txt --out e.mcap --width 346 --height 260\n"
+        "  mocaprig import-events events.txt --out e.mcap --epoch-ns 1589163147355806000\n"
+        "\nEvery message of the file is on the file's clock: log_time = epoch + the file's "
+        "time\n(default epoch 0: the file's own time; give the Unix time of its t = 0 to put "
+        "it on\nUnix time).\n",
     )
     p.add_argument("file", type=Path)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--width", type=int, help="sensor width (default: file header, else 240)")
     p.add_argument("--height", type=int, help="sensor height (default: file header, else 180)")
     p.add_argument("--serial", default="imported", help="name used in the topic")
+    p.add_argument(
+        "--epoch-ns",
+        type=int,
+        default=0,
+        help="Unix time (ns) of the file's t = 0, added to every log_time (default 0)",
+    )
     add_json_flag(p)
     p.set_defaults(
         func=lambda a: import_events(
-            a.file, a.out, width=a.width, height=a.height, serial=a.serial, as_json=a.json
+            a.file,
+            a.out,
+            width=a.width,
+            height=a.height,
+            serial=a.serial,
+            epoch_ns=a.epoch_ns,
+            as_json=a.json,
         )
     )

@@ -18,15 +18,19 @@ Time ranges are on ``log_time`` (host receive ns): ``start_ns`` inclusive, ``end
 
 from __future__ import annotations
 
+import io
 import logging
+import struct
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO, Final, Self
+from typing import IO, Any, BinaryIO, Final, Literal, Self, cast
 
+import lz4.frame
 import numpy as np
 import numpy.typing as npt
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Attachment as McapAttachment
@@ -49,6 +53,7 @@ from mocaprig.acquire.recording_format import (
 from mocaprig.errors import RecordingError
 
 __all__ = [
+    "UNIX_EPOCH_MIN_NS",
     "ChannelInfo",
     "RecordedAttachment",
     "RecordedMessage",
@@ -57,6 +62,8 @@ __all__ = [
     "RecoverReport",
     "ScanReport",
     "StreamInfo",
+    "TimeBase",
+    "TimeBaseName",
     "info",
     "recover",
 ]
@@ -64,6 +71,71 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 _MAGIC: Final = b"\x89MCAP0\r\n"
+#: What reading a malformed MCAP file raises besides McapError: struct.error on a short field,
+#: KeyError on a message of an undeclared channel, UnicodeDecodeError (a ValueError) on a bad
+#: string, OverflowError on a huge count; ZstdError and RuntimeError (lz4) on a corrupt chunk.
+_MCAP_ERRORS: Final = (
+    McapError, ValueError, EOFError, struct.error, KeyError, IndexError, OverflowError,
+    zstandard.ZstdError, RuntimeError,
+)  # fmt: skip
+#: A chunk may declare this many uncompressed bytes whatever its compressed size (our recorder
+#: writes 1 MiB chunks; one large image makes a bigger one); beyond, at most _MAX_CHUNK_RATIO
+#: times its compressed size. The decompressor allocates what the chunk declares.
+_MAX_CHUNK_BYTES: Final = 64 << 20
+_MAX_CHUNK_RATIO: Final = 1024
+
+
+class _BoundedFile:
+    """A binary file whose reads never ask for more than what is left of it.
+
+    The mcap reader passes lengths read from the file to ``read``, and a buffered read allocates
+    the size asked for before reading: a corrupt length would allocate gigabytes.
+    """
+
+    def __init__(self, f: BinaryIO, size: int) -> None:
+        self._f = f
+        self._size = size
+
+    def read(self, n: int | None = -1) -> bytes:
+        if n is None or n < 0:
+            return self._f.read()
+        return self._f.read(max(0, min(n, self._size - self._f.tell())))
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def seekable(self) -> bool:
+        return True
+
+
+def _chunk_problem(compression: str, uncompressed_size: int, data: bytes, data_size: int) -> str:
+    """What is wrong with a chunk's declared sizes ("" when nothing): checked before the
+    decompressor allocates ``uncompressed_size`` (or the size its frame header declares).
+
+    ``data`` holds at least the start of the compressed bytes (the frame header); ``data_size``
+    is their full length.
+    """
+    if compression not in ("", "zstd", "lz4"):
+        return f"unknown compression {compression!r}"
+    if not compression:
+        if uncompressed_size != data_size:
+            return f"uncompressed chunk of {data_size} bytes declares {uncompressed_size}"
+        return ""
+    if uncompressed_size > max(_MAX_CHUNK_BYTES, _MAX_CHUNK_RATIO * data_size):
+        return f"{data_size} compressed bytes declare {uncompressed_size} uncompressed bytes"
+    try:
+        if compression == "zstd":
+            declared = zstandard.frame_content_size(data)
+        else:
+            declared = int(lz4.frame.get_frame_info(data)["content_size"]) or -1
+    except (zstandard.ZstdError, RuntimeError, ValueError) as err:
+        return f"not a {compression} frame ({err})"
+    if declared >= 0 and declared != uncompressed_size:
+        return f"its {compression} frame declares {declared} bytes, the chunk {uncompressed_size}"
+    return ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,10 +156,22 @@ class RecordedMessage:
     log_time_ns: int
     sequence: int
     data: bytes = field(repr=False)
+    #: the recording it came from (named in errors)
+    source: str = ""
 
     def decode(self) -> Any:
-        """The payload as a :mod:`mocaprig.acquire.recording_format` message object."""
-        return decode_payload(self.schema_name, self.data)
+        """The payload as a :mod:`mocaprig.acquire.recording_format` message object.
+
+        Raises:
+            RecordingError: an unknown schema or a corrupt payload (naming the file, topic and
+                time).
+        """
+        try:
+            return decode_payload(self.schema_name, self.data)
+        except RecordingError as err:
+            where = f"{self.source}: " if self.source else ""
+            msg = f"{where}the {self.topic} message at {self.log_time_ns} ns: {err}"
+            raise RecordingError(msg) from err
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,7 +222,8 @@ class _LinearScan:
                 msg = f"{self.path} is not an MCAP file (bad magic {head!r}); check the path"
                 raise RecordingError(msg)
             f.seek(0)
-            reader = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31)
+            stream = cast(IO[bytes], _BoundedFile(f, size))
+            reader = StreamReader(stream, emit_chunks=True, record_size_limit=size)
             it = iter(reader.records)
             while True:
                 try:
@@ -146,7 +231,7 @@ class _LinearScan:
                 except StopIteration:
                     good_end = size
                     break
-                except (McapError, ValueError, EOFError) as err:
+                except _MCAP_ERRORS as err:
                     error = f"{type(err).__name__}: {err}"
                     break
                 good_end = f.tell()
@@ -158,6 +243,13 @@ class _LinearScan:
                 if in_summary:
                     continue
                 if isinstance(rec, Chunk):
+                    problem = _chunk_problem(
+                        rec.compression, rec.uncompressed_size, rec.data, len(rec.data)
+                    )
+                    if problem:
+                        bad += 1
+                        _log.warning("%s: skipping a corrupt chunk: %s", self.path, problem)
+                        continue
                     try:
                         inner = breakup_chunk(rec, validate_crc=True)
                     except Exception as err:  # CRC mismatch, bad compression: lose this chunk only
@@ -216,31 +308,20 @@ class Recording:
         self._open()
 
     def _open(self) -> None:
-        f = self.path.open("rb")
-        if f.read(len(_MAGIC)) != _MAGIC:
-            f.close()
-            msg = f"{self.path} is not an MCAP file (bad magic); check the path"
-            raise RecordingError(msg)
-        f.seek(0)
         try:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-        except (McapError, ValueError, EOFError):
-            summary = None
-        if summary is not None and summary.chunk_indexes:
-            self._file, self._reader, self.indexed = f, reader, True
-            for ch in summary.channels.values():
-                sch = summary.schemas.get(ch.schema_id)
-                self._channels[ch.topic] = ChannelInfo(
-                    ch.topic, sch.name if sch else "", dict(ch.metadata)
-                )
-            for m in reader.iter_metadata():
-                self._metadata[m.name] = dict(m.metadata)
-            for a in reader.iter_attachments():
-                self._attachments.append(
-                    RecordedAttachment(a.name, a.media_type, a.log_time, bytes(a.data))
-                )
-        else:
+            f = self.path.open("rb")
+        except OSError as err:
+            msg = f"cannot open recording {self.path}: {err.strerror or err}; check permissions"
+            raise RecordingError(msg) from err
+        try:
+            if f.read(len(_MAGIC)) != _MAGIC:
+                msg = f"{self.path} is not an MCAP file (bad magic); check the path"
+                raise RecordingError(msg)
+            indexed = self._open_indexed(f)
+        except BaseException:
+            f.close()
+            raise
+        if not indexed:
             f.close()
             scan = _LinearScan(self.path)
             for rec in scan.records():
@@ -264,6 +345,39 @@ class Recording:
                 f"{FORMAT_VERSION.split('.')[0]}.x; upgrade mocaprig"
             )
             raise RecordingError(msg)
+
+    def _open_indexed(self, f: BinaryIO) -> bool:
+        """Read channels, metadata and attachments through the summary; False (nothing kept)
+        when there is none or it is inconsistent with the file (then the file is scanned)."""
+        size = self.path.stat().st_size
+        try:
+            f.seek(0)
+            reader = make_reader(cast(IO[bytes], _BoundedFile(f, size)))
+            summary = reader.get_summary()
+            if summary is None or not summary.chunk_indexes:
+                return False
+            problem = _summary_problem(f, summary, size)
+            if problem:
+                _log.warning("%s: the summary is unusable (%s); scanning the file", self.path,
+                             problem)  # fmt: skip
+                return False
+            channels = {}
+            for ch in summary.channels.values():
+                sch = summary.schemas.get(ch.schema_id)
+                channels[ch.topic] = ChannelInfo(
+                    ch.topic, sch.name if sch else "", dict(ch.metadata)
+                )
+            metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            attachments = [
+                RecordedAttachment(a.name, a.media_type, a.log_time, bytes(a.data))
+                for a in reader.iter_attachments()
+            ]
+        except (*_MCAP_ERRORS, OSError) as err:
+            _log.warning("%s: cannot use the summary (%s); scanning the file", self.path, err)
+            return False
+        self._file, self._reader, self.indexed = f, reader, True
+        self._channels, self._metadata, self._attachments = channels, metadata, attachments
+        return True
 
     def __enter__(self) -> Self:
         return self
@@ -330,9 +444,14 @@ class Recording:
             try:
                 for schema, channel, m in it:
                     yield RecordedMessage(
-                        channel.topic, schema.name if schema else "", m.log_time, m.sequence, m.data
+                        channel.topic,
+                        schema.name if schema else "",
+                        m.log_time,
+                        m.sequence,
+                        m.data,
+                        str(self.path),
                     )
-            except McapError as err:
+            except _MCAP_ERRORS as err:
                 msg = f"cannot read {self.path}: {err}; try `mocaprig recover`"
                 raise RecordingError(msg) from err
             return
@@ -350,7 +469,12 @@ class Recording:
                 continue
             sch = scan.schemas.get(ch.schema_id)
             yield RecordedMessage(
-                ch.topic, sch.name if sch else "", rec.log_time, rec.sequence, rec.data
+                ch.topic,
+                sch.name if sch else "",
+                rec.log_time,
+                rec.sequence,
+                rec.data,
+                str(self.path),
             )
 
     def decoded(
@@ -440,9 +564,69 @@ class StreamInfo:
     metadata: Mapping[str, str]
 
 
+#: log_time values from here on are Unix-epoch times (2000-01-01T00:00:00Z); below, a clock
+#: counted from its own zero (an import's file time, a pipeline's reference clock, a monotonic
+#: clock). No recording of this rig is older, and no relative clock runs 30 years.
+UNIX_EPOCH_MIN_NS: Final = 946_684_800 * 10**9
+
+TimeBaseName = Literal["unix", "relative"]
+"""``"unix"``: ns since the Unix epoch (host receive time); ``"relative"``: another clock's ns."""
+
+
+@dataclass(frozen=True, slots=True)
+class TimeBase:
+    """The streams of a recording whose ``log_time`` is on one clock.
+
+    Attributes:
+        name: ``"unix"`` (log_time >= :data:`UNIX_EPOCH_MIN_NS`) or ``"relative"``.
+        topics: the streams with messages on it, sorted (a stream whose own log_time jumps
+            between the two clocks is on both).
+        messages: their messages.
+        start_ns: first log_time on it.
+        end_ns: last log_time on it.
+    """
+
+    name: TimeBaseName
+    topics: tuple[str, ...]
+    messages: int
+    start_ns: int
+    end_ns: int
+
+
+_RECORDER_TOPICS: Final = frozenset({"/diagnostics", "/log"})
+
+
+def _time_bases(segments: Mapping[tuple[str, TimeBaseName], list[int]]) -> tuple[TimeBase, ...]:
+    """Group ``(topic, clock) -> [messages, first, last]`` by clock; the base holding the most
+    messages outside the recorder's own topics comes first (it gives the file's duration)."""
+    bases = []
+    names: tuple[TimeBaseName, ...] = ("unix", "relative")
+    for name in names:
+        segs = {t: v for (t, b), v in segments.items() if b == name}
+        if not segs:
+            continue
+        base = TimeBase(
+            name,
+            tuple(sorted(segs)),
+            sum(v[0] for v in segs.values()),
+            min(v[1] for v in segs.values()),
+            max(v[2] for v in segs.values()),
+        )
+        data = sum(v[0] for t, v in segs.items() if t not in _RECORDER_TOPICS)
+        bases.append((data, base.messages, base))
+    bases.sort(key=lambda x: x[:2], reverse=True)
+    return tuple(b for _, _, b in bases)
+
+
 @dataclass(frozen=True, slots=True)
 class RecordingInfo:
-    """What :func:`info` reports about one recording."""
+    """What :func:`info` reports about one recording.
+
+    ``start_ns``/``end_ns`` (and the duration) are those of one clock: the first of
+    ``time_bases``. A file whose streams are on different clocks (written before every message
+    of a file was put on one clock) has ``mixed_time_bases`` True, and ``time_bases`` names the
+    streams on each.
+    """
 
     path: Path
     indexed: bool
@@ -456,6 +640,12 @@ class RecordingInfo:
     devices: Mapping[str, Mapping[str, str]]
     attachments: tuple[str, ...]
     metadata: Mapping[str, Mapping[str, str]]
+    time_bases: tuple[TimeBase, ...] = ()
+
+    @property
+    def mixed_time_bases(self) -> bool:
+        """True when the streams' log_time are not all on one clock (an older file)."""
+        return len(self.time_bases) > 1
 
     @property
     def duration_s(self) -> float:
@@ -503,6 +693,17 @@ class RecordingInfo:
             ],
             "devices": {k: dict(v) for k, v in self.devices.items()},
             "attachments": list(self.attachments),
+            "mixed_time_bases": self.mixed_time_bases,
+            "time_bases": [
+                {
+                    "time_base": b.name,
+                    "topics": list(b.topics),
+                    "messages": b.messages,
+                    "start_ns": b.start_ns,
+                    "end_ns": b.end_ns,
+                }
+                for b in self.time_bases
+            ],
         }
 
 
@@ -526,6 +727,7 @@ def info(path: Path) -> RecordingInfo:
     last_seq: dict[str, int] = {}
     gaps: dict[str, int] = {}
     last_status: bytes | None = None
+    segments: dict[tuple[str, TimeBaseName], list[int]] = {}  # [messages, first, last]
     for rec in scan.records():
         if not isinstance(rec, Message):
             continue
@@ -537,6 +739,11 @@ def info(path: Path) -> RecordingInfo:
         nbytes[t] = nbytes.get(t, 0) + len(rec.data)
         first[t] = min(first.get(t, rec.log_time), rec.log_time)
         last[t] = max(last.get(t, rec.log_time), rec.log_time)
+        clock: TimeBaseName = "unix" if rec.log_time >= UNIX_EPOCH_MIN_NS else "relative"
+        seg = segments.setdefault((t, clock), [0, rec.log_time, rec.log_time])
+        seg[0] += 1
+        seg[1] = min(seg[1], rec.log_time)
+        seg[2] = max(seg[2], rec.log_time)
         prev = last_seq.get(t)
         if prev is not None:
             diff = (rec.sequence - prev) % (1 << 32)
@@ -545,7 +752,7 @@ def info(path: Path) -> RecordingInfo:
         last_seq[t] = rec.sequence
         if t == "/diagnostics":
             last_status = rec.data
-    drops = _drops(meta.get("mocaprig.summary"), last_status)
+    drops = _drops(path, meta.get("mocaprig.summary"), last_status)
     streams = []
     for topic_name in sorted(set(channels) | set(counts)):
         n = counts.get(topic_name, 0)
@@ -568,31 +775,81 @@ def info(path: Path) -> RecordingInfo:
         )
     devices = {k: v for k, v in meta.items() if k.startswith("device/")}
     report = scan.report
+    bases = _time_bases(segments)
+    if len(bases) > 1:
+        _log.debug(  # the caller reports it (``mocaprig info`` prints a warning line)
+            "%s mixes time bases: %s; its duration is that of the %s clock",
+            path,
+            "; ".join(f"{', '.join(b.topics)} on {b.name} time" for b in bases),
+            bases[0].name,
+        )
     return RecordingInfo(
         path=path,
         indexed=indexed,
         recovered="mocaprig.recovery" in meta,
         format_version=meta.get("mocaprig", {}).get("format_version"),
         stop_reason=meta.get("mocaprig.summary", {}).get("stop_reason"),
-        start_ns=min(first.values()) if first else None,
-        end_ns=max(last.values()) if last else None,
+        start_ns=bases[0].start_ns if bases else None,
+        end_ns=bases[0].end_ns if bases else None,
         scan=report,
         streams=tuple(streams),
         devices=devices,
         attachments=attachments,
         metadata=meta,
+        time_bases=bases,
     )
 
 
-def _drops(summary: Mapping[str, str] | None, last_status: bytes | None) -> dict[str, int] | None:
+def _drops(
+    path: Path, summary: Mapping[str, str] | None, last_status: bytes | None
+) -> dict[str, int] | None:
     if summary is not None:
-        return {
-            k[len("dropped:") :]: int(v) for k, v in summary.items() if k.startswith("dropped:")
-        }
+        out = {}
+        for k, v in summary.items():
+            if k.startswith("dropped:"):
+                try:
+                    out[k[len("dropped:") :]] = int(v)
+                except ValueError:
+                    _log.warning("%s: mocaprig.summary %s = %r is not a count", path, k, v)
+        return out
     if last_status is not None:  # a crashed file: the last live status is the best we have
-        status = RecorderStatus.decode(last_status)
+        try:
+            status = RecorderStatus.decode(last_status)
+        except RecordingError as err:
+            _log.warning("%s: the last /diagnostics status cannot be read: %s", path, err)
+            return None
         return {s.topic: s.dropped for s in status.streams}
     return None
+
+
+def _summary_problem(f: BinaryIO, summary: Any, size: int) -> str:
+    """What makes a summary unusable ("" when nothing): a chunk index pointing outside the file
+    or at a record that is not that chunk, or sizes the decompressor must not be trusted with.
+    Reads each chunk's record header (about 80 bytes), not its data."""
+    for ci in summary.chunk_indexes:
+        start, length = ci.chunk_start_offset, ci.chunk_length
+        if not len(_MAGIC) <= start < start + length <= size:
+            return f"a chunk index points at bytes {start}..{start + length} of {size}"
+        f.seek(start)
+        head = f.read(min(length, 9 + 8 * 3 + 4 + 4 + 64))
+        if len(head) < 41 or head[0] != 0x06:
+            return f"no chunk record at byte {start}"
+        rec_len, usize = struct.unpack_from("<Q", head, 1)[0], struct.unpack_from("<Q", head, 25)[0]
+        n_comp = struct.unpack_from("<I", head, 37)[0]
+        if 41 + n_comp + 8 > len(head):
+            return f"the chunk at byte {start} has a {n_comp}-byte compression name"
+        comp = head[41 : 41 + n_comp].decode("utf-8", errors="replace")
+        (n_data,) = struct.unpack_from("<Q", head, 41 + n_comp)
+        data_at = start + 41 + n_comp + 8
+        if rec_len + 9 != length or data_at + n_data > start + length:
+            return f"the chunk at byte {start} does not match its index (length {rec_len})"
+        if usize != ci.uncompressed_size or comp != ci.compression:
+            return f"the chunk at byte {start} does not match its index (sizes, compression)"
+        f.seek(data_at)
+        problem = _chunk_problem(comp, usize, f.read(min(n_data, 32)), n_data)
+        if problem:
+            return f"the chunk at byte {start}: {problem}"
+    return ""
 
 
 # -------------------------------------------------------------------------------------------

@@ -270,6 +270,9 @@ def _get(
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         msg = f"{source}: '{at}{key}' must be {kind.__name__}, got {value!r}"
         raise ValidationError(msg)
+    if isinstance(value, int) and not -(2**63) <= value < 2**63:  # TOML: 64-bit; tomllib: any
+        msg = f"{source}: '{at}{key}' = {value} is beyond a 64-bit integer; see docs/rig-file.md"
+        raise ValidationError(msg)
     return value
 
 

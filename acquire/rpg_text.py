@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import decimal
+import io
 import itertools
 from pathlib import Path
 from typing import TextIO
@@ -105,12 +106,18 @@ def read_events_txt(path: Path) -> RpgEventText:
     exactly too. Negative times are read as such (``import-events`` refuses them).
 
     Raises:
-        RecordingError: a malformed line or a time finer than 1 ns (its line number is given).
+        RecordingError: the file cannot be read, is not ASCII text, or has a malformed line or
+            a time finer than 1 ns (its line number is given).
     """
-    fast = _read_events_txt_fast(path.read_bytes())
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        msg = f"cannot read {path}: {err.strerror or err}; check the path"
+        raise RecordingError(msg) from err
+    fast = _read_events_txt_fast(data)
     if fast is not None:
         return fast
-    return _read_events_txt_lines(path)
+    return _read_events_txt_lines(path, data)
 
 
 def _read_events_txt_fast(data: bytes) -> RpgEventText | None:
@@ -165,36 +172,55 @@ def _digits_to_int(col: npt.NDArray[np.bytes_]) -> npt.NDArray[np.int64]:
     return value
 
 
-def _read_events_txt_lines(path: Path) -> RpgEventText:
+def _read_events_txt_lines(path: Path, data: bytes | None = None) -> RpgEventText:
+    if data is None:
+        data = path.read_bytes()
     width = height = None
     ts: list[int] = []
     xs: list[int] = []
     ys: list[int] = []
     ps: list[int] = []
-    with path.open("r", encoding="ascii") as f:
-        for lineno, line in enumerate(f, 1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError as err:
+        lineno = data.count(b"\n", 0, err.start) + 1
+        msg = (
+            f"{path}:{lineno}: byte {data[err.start]:#04x} is not ASCII; an RPG events file is "
+            "plain 't x y p' text: is it the right file?"
+        )
+        raise RecordingError(msg) from err
+    for lineno, line in enumerate(io.StringIO(text, newline=None), 1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#"):
+            continue
+        try:
+            if lineno == 1 and len(tok) == 2:
+                width, height = int(tok[0]), int(tok[1])
                 continue
-            try:
-                if lineno == 1 and len(tok) == 2:
-                    width, height = int(tok[0]), int(tok[1])
-                    continue
-                if len(tok) != 4:
-                    bad = f"expected 4 columns, got {len(tok)}"
-                    raise ValueError(bad)
-                ts.append(_seconds_to_ns(tok[0]))
-                xs.append(int(tok[1]))
-                ys.append(int(tok[2]))
-                ps.append(int(tok[3]))
-            except ValueError as err:
-                msg = (
-                    f"{path}:{lineno}: not an RPG event line ('t x y p', t in s with at most 9 "
-                    f"decimals): {line.strip()!r} ({err}); fix or remove that line"
-                )
-                raise RecordingError(msg) from err
+            if len(tok) != 4:
+                bad = f"expected 4 columns, got {len(tok)}"
+                raise ValueError(bad)
+            ts.append(_seconds_to_ns(tok[0]))
+            xs.append(_coordinate(tok[1], "x"))
+            ys.append(_coordinate(tok[2], "y"))
+            ps.append(int(tok[3]))
+        except ValueError as err:
+            msg = (
+                f"{path}:{lineno}: not an RPG event line ('t x y p', t in s with at most 9 "
+                f"decimals): {line.strip()!r} ({err}); fix or remove that line"
+            )
+            raise RecordingError(msg) from err
     t_ns = np.asarray(ts, dtype=np.int64)
     return RpgEventText(make_events(t_ns // 1000, xs, ys, ps), t_ns, width, height)
+
+
+def _coordinate(text: str, name: str) -> int:
+    """A pixel coordinate as the event dtype holds it (uint16)."""
+    v = int(text)
+    if not 0 <= v < 2**16:
+        bad = f"{name} = {v} is not a pixel coordinate (0..65535)"
+        raise ValueError(bad)
+    return v
 
 
 def _seconds_to_ns(text: str) -> int:
@@ -228,6 +254,10 @@ def _seconds_to_ns(text: str) -> int:
     return -ns if neg else ns
 
 
+#: The largest log_time an import writes (ns): MCAP stores u64, the readers' numpy int64.
+_MAX_LOG_TIME_NS = (1 << 63) - 1
+
+
 @dataclasses.dataclass(frozen=True, slots=True)
 class ImportedEvents:
     """What :func:`import_events_txt` stored.
@@ -253,20 +283,28 @@ def import_events_txt(
     height: int | None,
     serial: str = "imported",
     packet_us: int = 10_000,
+    epoch_ns: int = 0,
 ) -> ImportedEvents:
     """Store the events of an RPG events text file ``src`` in a new recording ``out``.
 
     Events go to ``/davis/<serial>/events`` in packets of ``packet_us``, with their exact ns
-    times (:attr:`EventPacket.t_ns`), so ``export --format txt`` gives the same lines back;
-    there is no host receive time, so ``log_time`` = the packet's first event time (ns,
-    clamped at 0).
+    times (:attr:`EventPacket.t_ns`), so ``export --format txt`` gives the same lines back.
+
+    One clock for the whole file: there is no host receive time, so every message's
+    ``log_time`` — the packets' (their first event's time) and the recorder's own
+    ``/diagnostics``, ``/log`` and summary times — is on the file's time base shifted by
+    ``epoch_ns``: ``log_time = epoch_ns + t_ns``. With the default 0 that is the file's own
+    time (ns since its t = 0); pass the Unix time of the file's t = 0 to put the recording on
+    Unix time. The ``import`` metadata record states the epoch (``epoch_ns``).
 
     Raises:
-        ValidationError: ``packet_us`` out of range.
+        ValidationError: ``packet_us`` or ``epoch_ns`` out of range.
         RecordingError: a malformed line, events outside ``width`` x ``height``, negative
-            times, or ``out`` cannot be written.
+            times, times that overflow the clock after the epoch shift, or ``out`` cannot be
+            written.
     """
     check_range(packet_us, 1, MAX_EVENT_PACKET_SPAN_US, name="packet_us")
+    check_range(epoch_ns, 0, _MAX_LOG_TIME_NS, name="epoch_ns")
     txt = read_events_txt(src)
     events, t_ns = txt.events, txt.t_ns
     w = width if width is not None else (txt.width if txt.width is not None else 240)
@@ -277,6 +315,15 @@ def import_events_txt(
     if events.size and int(t_ns.min()) < 0:
         msg = f"{src}: negative timestamps cannot be stored (the mono encoding needs t >= 0)"
         raise RecordingError(msg)
+    if events.size and epoch_ns + int(t_ns.max()) > _MAX_LOG_TIME_NS:
+        msg = (
+            f"{src}: the last event time {int(t_ns.max())} ns plus the epoch {epoch_ns} ns "
+            "overflows the recording clock (int64 ns); pass a smaller --epoch-ns"
+        )
+        raise RecordingError(msg)
+    # The recorder's own messages are stamped on the events' clock (the time of the packet
+    # being written), so the file has one time base.
+    now = [epoch_ns + (int(t_ns[0]) if events.size else 0)]
     rec = Recorder(
         out,
         compression="zstd",
@@ -284,7 +331,9 @@ def import_events_txt(
         queue_bytes=1 << 62,
         min_free_disk_bytes=0,
         metadata={"import": {"source": src.name, "format": "rpg-txt", "width": str(w),
-                             "height": str(h)}},
+                             "height": str(h), "epoch_ns": str(epoch_ns),
+                             "log_time": "epoch_ns + the file's time (ns)"}},
+        clock_ns=lambda: now[0],
     )  # fmt: skip
     frame_id = f"davis_{serial}"
     n = 0
@@ -297,10 +346,11 @@ def import_events_txt(
             bins = (t_ns - t_ns[0]) // (packet_us * 1000)
             edges = [0, *(np.flatnonzero(np.diff(bins)) + 1).tolist(), events.size]
             for lo, hi in itertools.pairwise(edges):
+                now[0] = epoch_ns + int(t_ns[lo])
                 ok = rec.put(
                     hd,
                     EventPacket(events[lo:hi], w, h, n, frame_id, t_ns=t_ns[lo:hi]),
-                    log_time_ns=max(int(t_ns[lo]), 0),
+                    log_time_ns=now[0],
                     sequence=n,
                 )
                 if not ok:

@@ -5,6 +5,13 @@ Both first check the file's structure in pure Python (:mod:`mocaprig.calib.c3d_l
 decode the data with ``ezc3d`` or py-c3d, by default in a child interpreter
 (:mod:`mocaprig.calib.c3d_decode`), and with numpy where those fall short.
 
+Processor types and storage. Intel, DEC (VAX floats) and SGI/MIPS (big-endian) files, each with
+float or 16-bit integer storage (× POINT:SCALE), read to the same values: tested on the six
+variants of one file made by py-c3d's writer and a byte-level converter, and of the real Nexus
+file (``tests/calib/test_c3d_variants.py``). SGI points are py-c3d's checked against the numpy
+decoder and taken from numpy: py-c3d scales integer words in float32, ezc3d and numpy in float64,
+and the variants must agree.
+
 Analog channels. ANALOG:USED channels are stored after the points of each frame,
 ANALOG:RATE / POINT:RATE samples per frame (header word 10), each sample one value per channel.
 Physical value = (stored − ANALOG:OFFSET) × ANALOG:SCALE × ANALOG:GEN_SCALE (c3d.org).
@@ -36,7 +43,12 @@ from mocaprig.calib.c3d_decode import (
 )
 from mocaprig.calib.c3d_layout import analog_layout, validate_c3d_bytes
 from mocaprig.calib.vicon_build import build_trajectories, resolve_unit
-from mocaprig.calib.vicon_records import AnalogChannels, MarkerTrajectories, ViconFileError
+from mocaprig.calib.vicon_records import (
+    AnalogChannels,
+    FloatArray,
+    MarkerTrajectories,
+    ViconFileError,
+)
 
 __all__ = ["read_c3d", "read_c3d_analogs"]
 
@@ -69,8 +81,10 @@ def read_c3d(
             yourself in tight loops. The structural check runs in-process either way (< 1 ms).
 
     Returns:
-        The trajectories; ``metadata`` holds ``format="c3d"``, ``reader``, ``processor``,
-        ``units_raw``, ``frames_source`` and the MANUFACTURER strings when present.
+        The trajectories; ``metadata`` holds ``format="c3d"``, ``reader``, ``processor``
+        (``intel``/``dec``/``sgi``), ``storage`` (``float``/``int``), ``point_scale``
+        (|POINT:SCALE|, file units), ``units_raw``, ``frames_source`` and the MANUFACTURER
+        strings when present.
 
     Raises:
         ViconFileError: the file is malformed, truncated, hostile, or its unit is unknown.
@@ -108,6 +122,12 @@ def read_c3d(
         raise ViconFileError(msg, path=p)
     # Residuals (and camera bytes) are decoded here per c3d.org: ezc3d 1.7.2 swaps the two bytes.
     np_xyz, residual = decode_point_block(layout, buf)
+    if layout.processor == "sgi" and xyz.shape == np_xyz.shape:
+        # py-c3d multiplies integer words by POINT:SCALE in float32, ezc3d and numpy in float64;
+        # the numpy values are kept so that the six variants of a file read the same.
+        _check_same_points(p, xyz, np_xyz, residual, layout.scale, reader)
+        xyz = np_xyz
+        reader = f"{reader} + numpy"
     if xyz.shape[0] < layout.n_frames:
         _log.info(
             "%s: %s returned %d of %d frames (16-bit frame-count quirk); the point block is "
@@ -123,6 +143,8 @@ def read_c3d(
         "format": "c3d",
         "reader": reader,
         "processor": layout.processor,
+        "storage": "float" if layout.is_float else "int",
+        "point_scale": str(np.float32(abs(layout.scale))),  # as stored, without float64 noise
         "units_raw": units_raw,
         "frames_source": layout.frames_source,
     }
@@ -153,6 +175,25 @@ def read_c3d(
     return traj
 
 
+def _check_same_points(
+    path: str, a: FloatArray, b: FloatArray, residual: FloatArray, scale: float, reader: str
+) -> None:
+    """Raise when two decoders of one point block disagree beyond float32 rounding."""
+    valid = residual >= 0
+    tol = 1e-6 * np.maximum(np.abs(b), abs(scale))
+    with np.errstate(invalid="ignore"):
+        same = (a == b) | (np.abs(a - b) <= tol) | (np.isnan(a) & np.isnan(b))
+    bad = valid[..., None] & ~same
+    if np.any(bad):
+        f, i, _ = (int(x[0]) for x in np.nonzero(bad))
+        msg = (
+            f"{path}: {reader} and the numpy decoder read frame {f + 1}, point {i + 1} as "
+            f"{a[f, i].tolist()} and {b[f, i].tolist()}; the file is inconsistent; re-export it, "
+            "or report the file to the maintainers"
+        )
+        raise ViconFileError(msg, path=path)
+
+
 def read_c3d_analogs(path: str | os.PathLike[str], *, isolate: bool = True) -> AnalogChannels:
     """Read the analog channels of a C3D file, in physical units (see the module docstring).
 
@@ -162,7 +203,8 @@ def read_c3d_analogs(path: str | os.PathLike[str], *, isolate: bool = True) -> A
 
     Returns:
         The channels (none when the file has no analog data); ``metadata`` holds ``reader``,
-        ``processor`` and the raw ``gen_scale``.
+        ``processor``, ``storage``, ``format`` (``signed``/``unsigned``) and the raw
+        ``gen_scale``.
 
     Raises:
         ViconFileError: the file is malformed or truncated, its ANALOG parameters are missing or
@@ -227,6 +269,7 @@ def read_c3d_analogs(path: str | os.PathLike[str], *, isolate: bool = True) -> A
         metadata={
             "reader": reader,
             "processor": layout.processor,
+            "storage": "float" if layout.is_float else "int",
             "gen_scale": repr(alay.gen_scale),
             "format": "unsigned" if alay.unsigned else "signed",
         },

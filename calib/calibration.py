@@ -372,7 +372,7 @@ def calibration_from_dict(data: Mapping[str, Any], *, source: str = "calibration
     except KeyError as err:
         msg = f"{source}: an entry lacks the key {err.args[0]!r}"
         raise CalibrationError(msg) from err
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError, AttributeError) as err:
         msg = f"{source}: invalid value: {err}"
         raise CalibrationError(msg) from err
     except CalibrationError as err:
@@ -435,7 +435,7 @@ def read_calibration(
         kind = fmt or ("json" if p.suffix == ".json" else "toml")
     try:
         data = json.loads(raw) if kind == "json" else tomllib.loads(raw.decode())
-    except (ValueError, UnicodeDecodeError) as err:
+    except (ValueError, UnicodeDecodeError, RecursionError) as err:
         msg = f"{name} is not valid {kind.upper()}: {err}"
         raise CalibrationError(msg) from err
     if not isinstance(data, Mapping):

@@ -95,7 +95,30 @@ def vicon_info_summary(traj: MarkerTrajectories) -> dict[str, Any]:
         "software": meta.get("software"),
         "software_version": meta.get("software_version"),
         "reader": meta.get("reader"),
+        "processor": meta.get("processor"),
+        "storage": meta.get("storage"),
+        "point_scale": float(meta["point_scale"]) if "point_scale" in meta else None,
     }
+
+
+_PROCESSOR_NAMES = {
+    "intel": "Intel (little-endian, IEEE floats)",
+    "dec": "DEC VAX (little-endian, VAX floats)",
+    "sgi": "SGI/MIPS (big-endian, IEEE floats)",
+}
+
+
+def _storage_line(summary: dict[str, Any]) -> str | None:
+    """The ``storage:`` line of a C3D file: processor type and how points are stored."""
+    proc = summary["processor"]
+    if proc is None:
+        return None
+    scale = summary["point_scale"]
+    if summary["storage"] == "int":
+        how = f"16-bit integers x POINT:SCALE {scale:g} {summary['source_unit']}"
+    else:
+        how = "32-bit floats" + (f" (POINT:SCALE -{scale:g})" if scale is not None else "")
+    return f"  storage:   {_PROCESSOR_NAMES.get(proc, proc)}, {how}"
 
 
 def vicon_info(args: argparse.Namespace) -> int:
@@ -127,6 +150,7 @@ def vicon_info(args: argparse.Namespace) -> int:
             f"({summary['duration_s']:.2f} s, first frame {summary['first_frame']})"
         ),
         f"  unit:      {summary['source_unit']} in the file (reported in m)",
+        *([line] if (line := _storage_line(summary)) else []),
         f"  gaps:      {100 * summary['gap_fraction']:.1f} % of samples",
         f"  extent:    {'n/a' if extent != extent else f'{extent:.3f} m'} (bounding-box diagonal)",
     ]

@@ -19,6 +19,7 @@ import numpy as np
 
 from mocaprig.calib.vicon_build import build_trajectories, resolve_unit
 from mocaprig.calib.vicon_records import MarkerTrajectories, ViconFileError
+from mocaprig.errors import ValidationError
 
 __all__ = ["read_nexus_csv"]
 
@@ -31,7 +32,11 @@ def _is_blank(row: Sequence[str]) -> bool:
 
 def _to_float(cell: str) -> float:
     c = cell.strip()
-    return math.nan if not c else float(c)
+    v = math.nan if not c else float(c)
+    if math.isinf(v):
+        msg = f"{c!r} is infinite (gaps are empty cells)"
+        raise ValueError(msg)
+    return v
 
 
 def read_nexus_csv(
@@ -160,6 +165,9 @@ def read_nexus_csv(
             frame = int(float(first))
         except ValueError:
             break  # next section header
+        except OverflowError as err:
+            msg = f"the frame number {first!r} is not a finite number"
+            raise fail(msg, j) from err
         if has_subframe and len(row) > 1 and row[1].strip() not in ("", "0"):
             msg = f"sub frame {row[1].strip()!r} in a trajectories section"
             raise fail(msg, j)
@@ -178,6 +186,13 @@ def read_nexus_csv(
         raise fail(msg, data_i)
     first_frame = frames[0]
     n_frames = frames[-1] - first_frame + 1
+    if n_frames > 2 * len(frames) + 100:
+        # Absent rows become gaps; this many means damaged frame numbers, not a few lost rows.
+        msg = (
+            f"the frame numbers run from {first_frame} to {frames[-1]} over only {len(frames)} "
+            "rows; the file is damaged"
+        )
+        raise fail(msg)
     xyz = np.full((n_frames, len(labels), 3), np.nan)
     idx = np.asarray(frames) - first_frame
     xyz[idx] = np.asarray(values, dtype=np.float64).reshape(len(frames), len(labels), 3)
@@ -185,18 +200,21 @@ def read_nexus_csv(
         _log.warning("%s: %d frame rows are absent; treated as gaps", p, n_frames - len(frames))
     residual = np.full((n_frames, len(labels)), np.nan)
     style = "nexus" if has_subframe else "workstation"
-    return build_trajectories(
-        labels=labels,
-        xyz=xyz,
-        residual=residual,
-        rate_hz=rate,
-        first_frame=first_frame,
-        unit=length_unit,
-        source=p,
-        metadata={"format": f"{style}-csv", "reader": "mocaprig csv", "units_raw": units_raw_s},
-        model_outputs=frozenset(),
-        keep_virtual=keep_virtual,
-        keep_unlabeled=keep_unlabeled,
-        strip_subject_prefix=strip_subject_prefix,
-        check_suffix=True,
-    )
+    try:
+        return build_trajectories(
+            labels=labels,
+            xyz=xyz,
+            residual=residual,
+            rate_hz=rate,
+            first_frame=first_frame,
+            unit=length_unit,
+            source=p,
+            metadata={"format": f"{style}-csv", "reader": "mocaprig csv", "units_raw": units_raw_s},
+            model_outputs=frozenset(),
+            keep_virtual=keep_virtual,
+            keep_unlabeled=keep_unlabeled,
+            strip_subject_prefix=strip_subject_prefix,
+            check_suffix=True,
+        )
+    except ValidationError as err:
+        raise fail(str(err)) from err

@@ -23,7 +23,8 @@ Readers:
   structural walk (header, parameter records with bounds checks, POINT sanity, data-section length
   against the file size) that rejects broken files with a clear :class:`ViconFileError` before any
   native code sees them. Intel and DEC files are then decoded by ``ezc3d``; SGI/MIPS (big-endian)
-  files, which ``ezc3d`` 1.7.2 rejects, by the pure-Python ``c3d`` package (py-c3d). With
+  files, which ``ezc3d`` 1.7.2 rejects, by the pure-Python ``c3d`` package (py-c3d), checked
+  against the numpy decoder. Float and integer storage of every processor type read alike. With
   ``isolate=True`` (the default) the decoder runs in a child interpreter (``python -c``, not
   ``multiprocessing``, whose spawn/forkserver children re-import the caller's ``__main__``), so a
   crash inside ``ezc3d`` (it segfaults on some malformed parameter sections) becomes a

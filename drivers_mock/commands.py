@@ -64,6 +64,13 @@ def register_simulate(subparsers: argparse._SubParsersAction[argparse.ArgumentPa
         help="named scenario (default: %(default)s)",
     )
     p.add_argument("--motion", metavar="FILE.bvh", help="BVH motion to retarget onto the actor")
+    p.add_argument(
+        "--joint-map",
+        metavar="FILE.toml",
+        default=None,
+        help='map our joints onto the BVH\'s (our name = "its name"), for skeletons the '
+        "exporter tables do not know",
+    )
     p.add_argument("--seed", type=int, default=0, help="world seed (default: %(default)s)")
     p.add_argument("--seconds", type=float, required=True, help="session length in seconds (>= 3)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (must be empty)")
@@ -110,6 +117,7 @@ def _parse_devices(text: str) -> tuple[Device, ...]:
 
 def _simulate(args: argparse.Namespace) -> int:
     from mocaprig.drivers_mock.session import simulate_session
+    from mocaprig.process.body.bvh import load_joint_map
 
     result = simulate_session(
         args.out,
@@ -117,6 +125,7 @@ def _simulate(args: argparse.Namespace) -> int:
         seed=args.seed,
         seconds=args.seconds,
         motion_path=args.motion,
+        joint_map=None if args.joint_map is None else load_joint_map(args.joint_map),
         truth_rate_hz=args.truth_rate,
         overwrite=args.overwrite,
         progress=lambda label: ProgressBar(f"simulate {label}"),

@@ -14,7 +14,7 @@ calibration); everything under ``truth_*`` is for scoring and for the synthetic 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,6 +98,7 @@ def simulate_eventcap_take(
     seed: int,
     seconds: float,
     motion_path: str | Path | None = None,
+    joint_map: Mapping[str, str] | None = None,
     scenario: str = "default",
     start_s: float = 0.0,
     truth_step_us: int = 1000,
@@ -110,6 +111,7 @@ def simulate_eventcap_take(
         seed: World seed (body, texture, thresholds, noise).
         seconds: Take length (s; ≥ 3, the scenario's minimum).
         motion_path: A BVH clip for the actor (default: the scenario's procedural motion).
+        joint_map: Our joint name -> the BVH's joint name (``--joint-map``), when needed.
         scenario: Scenario name (see :data:`~mocaprig.drivers_mock.scenario.SCENARIOS`).
         start_s: Simulate the DAVIS only from this instant of the world (s): a short, cheap
             excerpt of a longer motion (the truth still covers the whole take).
@@ -121,7 +123,9 @@ def simulate_eventcap_take(
         ValidationError: a bad option; ProcessingError: the BVH cannot be read.
     """
     check_positive(float(truth_step_us), name="truth_step_us")
-    world = build_scenario(scenario, seed=seed, seconds=seconds, motion_path=motion_path)
+    world = build_scenario(
+        scenario, seed=seed, seconds=seconds, motion_path=motion_path, joint_map=joint_map
+    )
     sim = DavisSimulator(world, **davis_options)
     camera = world.rig.davis.camera
     t1_us = int(np.floor(float(sim.device_us(world.duration_ns))))
@@ -171,6 +175,7 @@ def simulated_take_with_truth(
     seed: int,
     seconds: float,
     motion_path: str | Path | None = None,
+    joint_map: Mapping[str, str] | None = None,
     scenario: str = "default",
     start_s: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
@@ -183,6 +188,7 @@ def simulated_take_with_truth(
         seed=seed,
         seconds=seconds,
         motion_path=motion_path,
+        joint_map=joint_map,
         scenario=scenario,
         start_s=start_s,
         progress=progress,

@@ -284,12 +284,16 @@ def _times(t_ns: npt.ArrayLike) -> I64:
 
 
 def _bvh_motion(
-    path: Path, shape: BodyShape, seconds: float, progress: Callable[[int, int], None] | None
+    path: Path,
+    shape: BodyShape,
+    seconds: float,
+    progress: Callable[[int, int], None] | None,
+    joint_map: Mapping[str, str] | None = None,
 ) -> Motion:
     from mocaprig.process.body.bvh import read_bvh, retarget_bvh
     from mocaprig.process.body.motion import Motion
 
-    clip = read_bvh(path)
+    clip = read_bvh(path, joint_map=joint_map)
     # Only the frames the session uses are retargeted (the fit costs ~30 ms per frame).
     needed = int(np.ceil(seconds / clip.frame_time_s)) + 2
     if clip.frames.shape[0] > needed:
@@ -333,6 +337,7 @@ def build_scenario(
     noise: NoiseSettings | None = None,
     progress: Callable[[int, int], None] | None = None,
     d415_timing: D415Timing | PulseAt | None = None,
+    joint_map: Mapping[str, str] | None = None,
 ) -> Scenario:
     """Build a seeded scenario.
 
@@ -350,6 +355,8 @@ def build_scenario(
             ``"exposure-start"`` (:meth:`D415Timing.exposure_start`, the default) or
             ``"readout-start"`` (:meth:`D415Timing.readout_start`). It draws nothing: the
             same seed gives the same actor, rig poses and clocks under either timing.
+        joint_map: Our joint name -> BVH joint name for ``motion_path``'s skeleton
+            (:func:`~mocaprig.process.body.bvh.load_joint_map`; ``--joint-map``).
 
     Raises:
         ValidationError: unknown scenario, bad seed or length, unknown timing preset.
@@ -382,7 +389,7 @@ def build_scenario(
     if motion_path is not None:
         path = Path(motion_path)
         static_start_s = 0.0
-        motion = _bvh_motion(path, shape, seconds, progress)
+        motion = _bvh_motion(path, shape, seconds, progress, joint_map)
         source = str(path)
         scenario_name = "bvh"
         if motion.duration_s < seconds:

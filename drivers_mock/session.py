@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, Literal, get_args
@@ -184,6 +184,7 @@ def simulate_session(
     seed: int = 0,
     seconds: float = 10.0,
     motion_path: str | Path | None = None,
+    joint_map: Mapping[str, str] | None = None,
     noise: NoiseSettings | None = None,
     truth_rate_hz: float = 1000.0,
     overwrite: bool = False,
@@ -201,6 +202,8 @@ def simulate_session(
         seed: The seed.
         seconds: Session length (s), at least 3.
         motion_path: A BVH file to retarget onto the actor instead of the scenario's motion.
+        joint_map: Our joint name -> the BVH's joint name, for a skeleton the exporter tables
+            of :mod:`mocaprig.process.body.bvh_names` do not cover.
         noise: Noise settings (default :class:`NoiseSettings`).
         truth_rate_hz: Sampling rate of the truth (Hz).
         overwrite: Write into a non-empty folder, replacing what this function writes.
@@ -243,6 +246,7 @@ def simulate_session(
         seed=seed,
         seconds=seconds,
         motion_path=motion_path,
+        joint_map=joint_map,
         noise=noise,
         progress=stage("retarget") if motion_path is not None else None,
         d415_timing=d415_timing,

@@ -69,9 +69,19 @@ def check_finite(x: npt.ArrayLike, *, name: str = "array") -> npt.NDArray[Any]:
     return arr
 
 
+def _finite(value: float) -> bool:
+    """``np.isfinite`` that also takes Python ints beyond int64 (finite) and non-numbers (not)."""
+    if isinstance(value, int):
+        return True
+    try:
+        return bool(np.isfinite(value))
+    except TypeError:
+        return False
+
+
 def check_positive(value: float, *, name: str) -> float:
     """Return ``value`` if it is a finite number > 0."""
-    if not np.isfinite(value) or value <= 0:
+    if not _finite(value) or value <= 0:
         msg = f"{name} must be a finite number > 0, got {value!r}"
         raise ValidationError(msg)
     return value
@@ -79,7 +89,7 @@ def check_positive(value: float, *, name: str) -> float:
 
 def check_range(value: float, low: float, high: float, *, name: str) -> float:
     """Return ``value`` if ``low <= value <= high``."""
-    if not (np.isfinite(value) and low <= value <= high):
+    if not (_finite(value) and low <= value <= high):
         msg = f"{name} must lie in [{low}, {high}], got {value!r}"
         raise ValidationError(msg)
     return value

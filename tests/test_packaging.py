@@ -43,6 +43,8 @@ def test_the_wheel_installs_only_the_mocaprig_import_name(tmp_path: Path) -> Non
         "mocaprig/drivers_mock/d415.py",
         "mocaprig/acquire/data/99-mocaprig-davis.rules",
         "mocaprig/acquire/schemas/mocaprig.proto",
+        "mocaprig/acquire/data/layouts/recording.json",
+        "mocaprig/acquire/data/layouts/eventcap.json",
         "mocaprig/process/democap/weights/democap_lite.pt",
         "mocaprig/py.typed",
     ):

@@ -37,3 +37,13 @@ def test_scalar_checks() -> None:
         check_range(1.5, 0, 1, name="fraction")
     with pytest.raises(ValidationError, match="1 non-finite"):
         check_finite([1.0, np.nan], name="x")
+
+
+def test_scalar_checks_refuse_huge_ints_and_non_numbers_cleanly() -> None:
+    # A TOML integer beyond 64 bits or a string from a hand-edited file must be a
+    # ValidationError naming the field, not a TypeError from numpy.
+    with pytest.raises(ValidationError, match=r"port must lie in \[0, 65535\]"):
+        check_range(2**70, 0, 65535, name="port")
+    assert check_positive(2**70, name="big") == 2**70
+    with pytest.raises(ValidationError, match="rate_hz must be a finite number > 0"):
+        check_positive("fast", name="rate_hz")  # type: ignore[arg-type]

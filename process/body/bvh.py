@@ -19,7 +19,10 @@ Yrotation``, 3 or 6 channels). Conventions:
   or the CMU cgspeed unit of 0.056444 m) and the choice is logged.
 
 Retargeting (:func:`retarget_bvh`) fits our 33-parameter pose (:mod:`process.body.skeleton`) to
-each BVH frame; see its docstring.
+each BVH frame; see its docstring. Which BVH joint stands for each of ours comes from the naming
+tables of the common exporters and the skeleton's structure (:mod:`process.body.bvh_names`), or
+from a user's joint map (a TOML file of ``our joint = "its joint"`` lines, :func:`load_joint_map`;
+``--joint-map FILE.toml`` on the command line).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import logging
 import math
 import re
 import time
+import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +41,12 @@ import numpy as np
 import numpy.typing as npt
 
 from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body.bvh_names import (
+    DEFAULT_JOINT_CANDIDATES,
+    JointMapping,
+    check_joint_map,
+    map_joints,
+)
 from mocaprig.validation import check_positive
 
 if TYPE_CHECKING:
@@ -52,6 +62,8 @@ __all__ = [
     "bvh_global_positions",
     "bvh_rest_positions",
     "bvh_to_body_frame",
+    "load_joint_map",
+    "map_bvh_joints",
     "parse_bvh",
     "read_bvh",
     "resolve_joint_map",
@@ -96,6 +108,8 @@ class BvhClip:
         frame_time_s: Frame period (s).
         unit_scale: Metres per file length unit that was applied.
         source: Where the text came from (path or ``"<string>"``), for messages.
+        joint_map: The user's (our joint, BVH joint) pairs that retargeting applies before the
+            naming tables (:func:`map_bvh_joints`); ``()`` for none.
     """
 
     name: str
@@ -107,6 +121,7 @@ class BvhClip:
     frame_time_s: float
     unit_scale: float = 1.0
     source: str = "<string>"
+    joint_map: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         j = len(self.joint_names)
@@ -130,6 +145,7 @@ class BvhClip:
             msg = f"BvhClip {self.name!r}: frames has shape {frames.shape}, expected (F, {c})"
             raise ValidationError(msg)
         check_positive(float(self.frame_time_s), name="BvhClip.frame_time_s")
+        check_joint_map(dict(self.joint_map), self.joint_names, source=self.source)
         offsets.setflags(write=False)
         frames.setflags(write=False)
         object.__setattr__(self, "offsets_m", offsets)
@@ -328,6 +344,7 @@ def parse_bvh(
     unit_scale: float | None = None,
     source: str = "<string>",
     name: str | None = None,
+    joint_map: Mapping[str, str] | None = None,
 ) -> BvhClip:
     """Parse BVH text.
 
@@ -337,13 +354,16 @@ def parse_bvh(
             (logged at INFO).
         source: What to call the text in error messages (a path).
         name: Clip name (default: the stem of ``source``).
+        joint_map: Our joint name -> BVH joint name, kept on the clip for retargeting
+            (:attr:`BvhClip.joint_map`; e.g. from :func:`load_joint_map`).
 
     Returns:
         The clip, lengths in metres.
 
     Raises:
         ProcessingError: malformed text; the message names ``source``, the line and the problem.
-        ValidationError: ``unit_scale`` is not a finite number > 0.
+        ValidationError: ``unit_scale`` is not a finite number > 0, or ``joint_map`` names a
+            joint that is not ours or not in the file.
     """
     if unit_scale is not None:
         check_positive(float(unit_scale), name="unit_scale")
@@ -367,12 +387,20 @@ def parse_bvh(
     k = tok.motion_line + 1
     frames_count, k = _header_value(lines, k, "Frames", source)
     frame_time, k = _header_value(lines, k, "Frame Time", source)
-    n_frames = int(frames_count)
-    if n_frames != frames_count or n_frames < 1:
+    if not (math.isfinite(frames_count) and frames_count >= 1 and frames_count.is_integer()):
         msg = f"BVH {source}, line {k}: Frames must be a positive integer, found {frames_count!r}"
         raise ProcessingError(msg)
-    if not frame_time > 0:
-        msg = f"BVH {source}, line {k}: Frame Time must be > 0 s, found {frame_time!r}"
+    n_frames = int(frames_count)
+    if not (math.isfinite(frame_time) and frame_time > 0):
+        msg = f"BVH {source}, line {k}: Frame Time must be > 0 s and finite, found {frame_time!r}"
+        raise ProcessingError(msg)
+    # The frame count is the file's word: never allocate more rows than it holds lines.
+    frame_lines = sum(1 for line in lines[k:] if line.strip())
+    if n_frames > frame_lines:
+        msg = (
+            f"BVH {source}, line {k}: the header declares {n_frames} frames, found "
+            f"{frame_lines} frame lines (a truncated file, or a wrong Frames count)"
+        )
         raise ProcessingError(msg)
     n_channels = sum(len(c) for c in channels)
     data = np.empty((n_frames, n_channels), dtype=np.float64)
@@ -430,6 +458,7 @@ def parse_bvh(
         frame_time_s=float(frame_time),
         unit_scale=scale,
         source=source,
+        joint_map=tuple((joint_map or {}).items()),
     )
 
 
@@ -452,13 +481,18 @@ def _header_value(lines: Sequence[str], k: int, key: str, source: str) -> tuple[
 
 
 def read_bvh(
-    path: str | Path, *, unit_scale: float | None = None, name: str | None = None
+    path: str | Path,
+    *,
+    unit_scale: float | None = None,
+    name: str | None = None,
+    joint_map: Mapping[str, str] | None = None,
 ) -> BvhClip:
     """Read a BVH file (see :func:`parse_bvh` for the conventions and options).
 
     Raises:
         ProcessingError: the file cannot be read or is malformed (the message names the file
             and line).
+        ValidationError: ``joint_map`` names a joint that is not ours or not in the file.
     """
     p = Path(path)
     try:
@@ -466,7 +500,41 @@ def read_bvh(
     except OSError as err:
         msg = f"cannot read BVH file {p}: {err.strerror or err}"
         raise ProcessingError(msg) from err
-    return parse_bvh(text, unit_scale=unit_scale, source=str(p), name=name)
+    return parse_bvh(text, unit_scale=unit_scale, source=str(p), name=name, joint_map=joint_map)
+
+
+def load_joint_map(path: str | Path) -> dict[str, str]:
+    """Read a joint map: a TOML file of ``our joint = "its joint"`` lines, e.g.
+    ``LeftUpLeg = "Bip01_L_Thigh"`` (our names: :data:`~process.body.skeleton.JOINTS`).
+
+    Raises:
+        ProcessingError: the file cannot be read, is not TOML, or holds something other than
+            our joint names set to strings (the message names the file and the entry).
+    """
+    from mocaprig.process.body.skeleton import JOINT_INDEX, JOINTS
+
+    p = Path(path)
+    try:
+        table = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as err:
+        msg = f"cannot read joint map {p}: {err.strerror or err}"
+        raise ProcessingError(msg) from err
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        msg = f'joint map {p} is not TOML ({err}); write lines like LeftUpLeg = "Thigh_L"'
+        raise ProcessingError(msg) from err
+    out: dict[str, str] = {}
+    for ours, theirs in table.items():
+        if ours not in JOINT_INDEX:
+            msg = f"joint map {p}: {ours!r} is not one of our joints ({', '.join(JOINTS)})"
+            raise ProcessingError(msg)
+        if not isinstance(theirs, str) or not theirs:
+            msg = (
+                f"joint map {p}: {ours} = {theirs!r}; the value must be the BVH joint's name "
+                f'as a string, e.g. {ours} = "Bip01_L_Thigh"'
+            )
+            raise ProcessingError(msg)
+        out[ours] = theirs
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -568,48 +636,6 @@ def bvh_rest_positions(clip: BvhClip) -> npt.NDArray[np.float64]:
 # --------------------------------------------------------------------------------------------
 # Retargeting onto our skeleton
 
-#: Default BVH joint names tried for each of our joints (case-insensitive, first unused match
-#: wins; joints are matched in this order so e.g. a Mixamo-style "LeftShoulder" clavicle does not
-#: shadow "LeftArm"). Covers the CMU cgspeed conversions (both the plain and the 3ds Max-friendly
-#: naming) and Mixamo-like rigs.
-DEFAULT_JOINT_CANDIDATES: Mapping[str, tuple[str, ...]] = {
-    "Hips": ("Hips", "Hip", "Pelvis", "Root"),
-    "Spine2": ("Spine2", "Chest2", "Spine1", "Chest"),
-    "Spine1": ("Chest", "Spine1", "Spine"),
-    "Neck": ("Neck", "Neck1", "LowerNeck"),
-    "Head": ("Head",),
-    "HeadEnd": ("Head_End", "HeadTop_End", "HeadEnd", "HeadTop"),
-    **{
-        f"{side}{ours}": tuple(f"{pre}{name}" for pre, name in cands)
-        for side, short in (("Right", "R"), ("Left", "L"))
-        for ours, cands in (
-            ("Arm", ((side, "Arm"), (side, "UpArm"), (side, "Shoulder"))),
-            ("Shoulder", ((side, "Shoulder"), (side, "Collar"), (side, "Clavicle"))),
-            ("ForeArm", ((side, "ForeArm"), (side, "Elbow"), (side, "LowArm"))),
-            ("Hand", ((side, "Hand"), (side, "Wrist"))),
-            (
-                "HandEnd",
-                (
-                    (side, "HandMiddle1"),
-                    (side, "FingerBase"),
-                    (short, "Fingers"),
-                    (side, "HandIndex1"),
-                    (side, "Hand_End"),
-                    (side, "Wrist_End"),
-                ),
-            ),
-            ("UpLeg", ((side, "UpLeg"), (side, "Hip"), (side, "Thigh"), (side, "UpperLeg"))),
-            ("Leg", ((side, "Leg"), (side, "Knee"), (side, "Shin"), (side, "LowerLeg"))),
-            ("Foot", ((side, "Foot"), (side, "Ankle"))),
-            ("ToeBase", ((side, "ToeBase"), (side, "Toe"), (side, "Toes"))),
-            (
-                "ToeEnd",
-                ((side, "ToeBase_End"), (side, "Toe_End"), (side, "Toes_End"), (side, "ToeEnd")),
-            ),
-        )
-    },
-}
-
 #: Direction cues (our joint a -> our joint b, weight) fitted by :func:`retarget_bvh`.
 _CUES: tuple[tuple[str, str, float], ...] = (
     ("Hips", "Spine1", 1.0),
@@ -666,8 +692,23 @@ class RetargetReport:
     num_frames: int
 
 
+def map_bvh_joints(clip: BvhClip, joint_map: Mapping[str, str] | None = None) -> JointMapping:
+    """Our joints on the clip's skeleton (:func:`~process.body.bvh_names.map_joints`): the
+    clip's own joint map (:attr:`BvhClip.joint_map`) updated with ``joint_map``, then the naming
+    tables of the detected exporter family and the skeleton's structure.
+
+    Raises:
+        ValidationError: a joint map names a joint that is not ours or not in the BVH.
+        ProcessingError: the hips, both hip joints or the chest cannot be matched; the message
+            lists both skeletons' joints and the ``--joint-map`` file to write.
+    """
+    user = {**dict(clip.joint_map), **(joint_map or {})}
+    return map_joints(clip.joint_names, clip.parents, joint_map=user, source=clip.source)
+
+
 def resolve_joint_map(clip: BvhClip, joint_map: Mapping[str, str] | None = None) -> dict[str, int]:
-    """Our joint name -> BVH joint index, from ``joint_map`` then the default name candidates.
+    """Our joint name -> BVH joint index, for our joints that are BVH joints themselves (a
+    joint derived on a bone, see :func:`map_bvh_joints`, is left out).
 
     Args:
         clip: The BVH clip.
@@ -677,35 +718,7 @@ def resolve_joint_map(clip: BvhClip, joint_map: Mapping[str, str] | None = None)
         ValidationError: ``joint_map`` names an unknown joint of ours or of the BVH.
         ProcessingError: the hips, both hips joints or the spine cannot be mapped.
     """
-    from mocaprig.process.body.skeleton import JOINT_INDEX
-
-    lower = {n.lower(): i for i, n in enumerate(clip.joint_names)}
-    out: dict[str, int] = {}
-    used: set[int] = set()
-    for ours, theirs in (joint_map or {}).items():
-        if ours not in JOINT_INDEX:
-            msg = f"joint_map: {ours!r} is not one of our joints ({', '.join(JOINT_INDEX)})"
-            raise ValidationError(msg)
-        out[ours] = clip.joint_index(theirs)
-        used.add(out[ours])
-    for ours, cands in DEFAULT_JOINT_CANDIDATES.items():
-        if ours in out:
-            continue
-        for cand in cands:
-            idx = lower.get(cand.lower())
-            if idx is not None and idx not in used:
-                out[ours] = idx
-                used.add(idx)
-                break
-    needed = ("Hips", "LeftUpLeg", "RightUpLeg", "Spine2")
-    missing = [n for n in needed if n not in out]
-    if missing:
-        msg = (
-            f"BVH {clip.source}: cannot map our joint(s) {', '.join(missing)} onto its joints "
-            f"({', '.join(clip.joint_names)}); pass joint_map={{our name: BVH name}}"
-        )
-        raise ProcessingError(msg)
-    return out
+    return map_bvh_joints(clip, joint_map).indices()
 
 
 def _axis_vector(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -728,11 +741,12 @@ def bvh_to_body_frame(
     Raises:
         ProcessingError: the up and lateral axes coincide.
     """
-    rest = bvh_rest_positions(clip)
-    m = resolve_joint_map(clip, joint_map)
-    lateral = _axis_vector(rest[m["RightUpLeg"]] - rest[m["LeftUpLeg"]])
+    m = map_bvh_joints(clip, joint_map)
+    rest = m.points(bvh_rest_positions(clip))
+    col = m.column
+    lateral = _axis_vector(rest[col("RightUpLeg")] - rest[col("LeftUpLeg")])
     if up_axis == "auto":
-        up = _axis_vector(rest[m["Spine2"]] - rest[m["Hips"]])
+        up = _axis_vector(rest[col("Spine2")] - rest[col("Hips")])
     else:
         up = np.zeros(3)
         up["xyz".index(up_axis)] = 1.0
@@ -746,19 +760,32 @@ def bvh_to_body_frame(
     return np.stack([lateral, forward, up])
 
 
+def _how_summary(mapping: JointMapping) -> str:
+    """``"; by structure: Spine2, Spine1; derived: ..."`` for the joints not matched by name."""
+    parts = []
+    for how in ("joint map", "structure", "derived"):
+        names = [n for n, m in mapping.joints.items() if m.how == how]
+        if names:
+            parts.append(
+                f"{'from the joint map' if how == 'joint map' else how}: {', '.join(names)}"
+            )
+    return "".join(f"; {p}" for p in parts)
+
+
 def _unit(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
     return np.asarray(v / np.maximum(n, 1e-12))
 
 
-def _usable_cues(clip: BvhClip, jmap: Mapping[str, int]) -> list[tuple[int, int, int, int, float]]:
+def _usable_cues(clip: BvhClip, jmap: JointMapping) -> list[tuple[int, int, int, int, float]]:
+    """(our joint a, our joint b, column of a, column of b in ``jmap.points``, weight)."""
     from mocaprig.process.body.skeleton import JOINT_INDEX
 
-    rest = bvh_rest_positions(clip)
+    rest = jmap.points(bvh_rest_positions(clip))
     cues = []
     for a, b, w in _CUES:
-        if a in jmap and b in jmap:
-            ia, ib = jmap[a], jmap[b]
+        if a in jmap.joints and b in jmap.joints:
+            ia, ib = jmap.column(a), jmap.column(b)
             if np.linalg.norm(rest[ib] - rest[ia]) > 0.01:
                 cues.append((JOINT_INDEX[a], JOINT_INDEX[b], ia, ib, w))
     return cues
@@ -780,8 +807,9 @@ def retarget_bvh(
     Method (independent of either skeleton's local axis conventions):
 
     1. BVH global joint positions (:func:`bvh_global_positions`) are rotated into our frame
-       (:func:`bvh_to_body_frame`: Z up, facing +Y) and BVH joints are matched to ours by name
-       (:func:`resolve_joint_map`).
+       (:func:`bvh_to_body_frame`: Z up, facing +Y) and BVH joints are matched to ours by the
+       joint map, the exporter's naming table and the skeleton's structure
+       (:func:`map_bvh_joints`; the family found is logged).
     2. For every frame at once, our root rotation and 27 angles are fitted with L-BFGS through
        the differentiable forward kinematics so that each direction cue (bones such as
        thigh, shank, upper arm, forearm, foot, spine segments, plus the hip and shoulder lines
@@ -798,7 +826,8 @@ def retarget_bvh(
     Args:
         clip: The BVH clip.
         shape: Our subject's body shape.
-        joint_map: Our joint name -> BVH joint name, overriding the default names.
+        joint_map: Our joint name -> BVH joint name, on top of the clip's own
+            (:attr:`BvhClip.joint_map`) and before the naming tables.
         up_axis: The BVH's up axis, or ``"auto"`` to detect it.
         iterations: L-BFGS iterations.
         smoothness: Weight of the frame-to-frame smoothness term.
@@ -817,14 +846,27 @@ def retarget_bvh(
     from mocaprig.process.body.kinematics import clamp_to_limits, forward_kinematics_torch
     from mocaprig.process.body.motion import Motion
     from mocaprig.process.body.shape import rest_offsets
-    from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, POSE_DIM
+    from mocaprig.process.body.skeleton import DOF_LIMITS_RAD, JOINTS, POSE_DIM
 
     started = time.perf_counter()
-    jmap = resolve_joint_map(clip, joint_map)
+    mapping = map_bvh_joints(clip, joint_map)
+    jmap = {name: mapping.column(name) for name in mapping.names}
+    by_name = any(m.how == "name" for m in mapping.joints.values())
+    _log.info(
+        "BVH %s: %s; %d of our %d joints matched%s",
+        clip.source,
+        f"{mapping.family.name} joint names ({mapping.family.description})"
+        if by_name
+        else "joints named by the joint map",
+        len(jmap),
+        len(JOINTS),
+        _how_summary(mapping),
+    )
     conv = bvh_to_body_frame(clip, up_axis=up_axis, joint_map=joint_map)
-    pos = bvh_global_positions(clip) @ conv.T  # (F, J, 3), our axes, BVH scale
+    # (F, M, 3): our mapped joints, our axes, BVH scale
+    pos = mapping.points(bvh_global_positions(clip)) @ conv.T
     n = pos.shape[0]
-    cues = _usable_cues(clip, jmap)
+    cues = _usable_cues(clip, mapping)
     target = _unit(pos[:, [c[3] for c in cues]] - pos[:, [c[2] for c in cues]])
 
     # Initial root rotation from the hips line and the hips -> chest direction.
@@ -835,7 +877,7 @@ def retarget_bvh(
     root_rot = Rotation.from_matrix(np.stack([x_axis, y_axis, z_axis], axis=-1)).as_rotvec()
 
     # Root translation from the hips, scaled by the leg-length ratio.
-    rest = bvh_rest_positions(clip)
+    rest = mapping.points(bvh_rest_positions(clip))
     leg_bvh = [
         np.linalg.norm(rest[jmap[f"{s}Leg"]] - rest[jmap[f"{s}UpLeg"]])
         + np.linalg.norm(rest[jmap[f"{s}Foot"]] - rest[jmap[f"{s}Leg"]])
@@ -932,11 +974,12 @@ def retarget_errors(
     if motion.num_frames != clip.num_frames:
         msg = f"motion has {motion.num_frames} frames, the BVH clip {clip.num_frames}"
         raise ValidationError(msg)
-    jmap = resolve_joint_map(clip, joint_map)
+    mapping = map_bvh_joints(clip, joint_map)
+    jmap = {name: mapping.column(name) for name in mapping.names}
     conv = bvh_to_body_frame(clip, up_axis=up_axis, joint_map=joint_map)
-    theirs = bvh_global_positions(clip) @ conv.T
+    theirs = mapping.points(bvh_global_positions(clip)) @ conv.T
     ours = forward_kinematics(motion.poses, shape).positions_m
-    cues = _usable_cues(clip, jmap)
+    cues = _usable_cues(clip, mapping)
     d_ours = _unit(ours[:, [c[1] for c in cues]] - ours[:, [c[0] for c in cues]])
     d_theirs = _unit(theirs[:, [c[3] for c in cues]] - theirs[:, [c[2] for c in cues]])
     ang = np.degrees(np.arccos(np.clip(np.sum(d_ours * d_theirs, axis=-1), -1.0, 1.0)))
@@ -945,7 +988,7 @@ def retarget_errors(
     b = theirs[:, [jmap[n] for n in names]] - theirs[:, [jmap["Hips"]]]
     scale = float(np.sum(a * b) / np.sum(b * b))
     mpjpe = float(np.mean(np.linalg.norm(a - scale * b, axis=-1)))
-    rest = bvh_rest_positions(clip)
+    rest = mapping.points(bvh_rest_positions(clip))
     ref = np.array(ours)
     for j in range(1, len(PARENTS)):
         p = PARENTS[j]

@@ -185,6 +185,13 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     )
     tr.add_argument("--bvh-subjects", type=int, default=4, help="bodies per BVH clip")
     tr.add_argument(
+        "--joint-map",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help='our joint -> BVH joint for the --bvh skeletons, lines like LeftUpLeg = "Thigh_L"',
+    )
+    tr.add_argument(
         "--corpus",
         type=Path,
         default=None,
@@ -226,6 +233,13 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         help="motion corpus folder (default: ../shared/data/motion/corpus when present)",
     )
     ev.add_argument("--motion", default=None, metavar="FILE.bvh", help="test on this BVH motion")
+    ev.add_argument(
+        "--joint-map",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help='our joint -> BVH joint for --motion, lines like LeftUpLeg = "Thigh_L"',
+    )
     ev.add_argument(
         "--freestyle",
         action="store_true",
@@ -348,7 +362,7 @@ def democap_train(args: argparse.Namespace) -> int:
     import dataclasses
 
     from mocaprig.errors import ValidationError
-    from mocaprig.process.body import read_bvh
+    from mocaprig.process.body.bvh import load_joint_map, read_bvh
     from mocaprig.process.democap.checkpoint import load_checkpoint
     from mocaprig.process.democap.config import config_by_name
     from mocaprig.process.democap.train import TrainOptions, train
@@ -364,7 +378,8 @@ def democap_train(args: argparse.Namespace) -> int:
     config = config_by_name(args.config)
     if args.variant is not None:
         config = dataclasses.replace(config, variant=args.variant)
-    motions = tuple(read_bvh(p) for p in args.bvh)
+    joint_map = None if args.joint_map is None else load_joint_map(args.joint_map)
+    motions = tuple(read_bvh(p, joint_map=joint_map) for p in args.bvh)
     corpus, validation = _train_corpus(args)
 
     opts = TrainOptions(
@@ -461,7 +476,7 @@ def democap_eval(args: argparse.Namespace) -> int:
             protocol without a corpus folder.
     """
     from mocaprig.errors import ValidationError
-    from mocaprig.process.body import read_bvh
+    from mocaprig.process.body.bvh import load_joint_map, read_bvh
     from mocaprig.process.democap.evaluate import (
         PROTOCOLS,
         ProtocolResult,
@@ -495,7 +510,8 @@ def democap_eval(args: argparse.Namespace) -> int:
     results: list[ProtocolResult] = []
     by_cameras: dict[str, Any] = {}
     if special:
-        clip = None if args.motion is None else read_bvh(args.motion)
+        joint_map = None if args.joint_map is None else load_joint_map(args.joint_map)
+        clip = None if args.motion is None else read_bvh(args.motion, joint_map=joint_map)
         if clip is not None and clip.name in predictor.checkpoint.train_motions:
             seen = True
             print(

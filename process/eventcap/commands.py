@@ -85,6 +85,14 @@ def register_eventcap(subparsers: argparse._SubParsersAction[argparse.ArgumentPa
         "--motion", type=Path, default=None, metavar="FILE.bvh", help="actor motion (BVH)"
     )
     ev.add_argument(
+        "--joint-map",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help='map our joints onto the BVH\'s (our name = "its name"), for skeletons the '
+        "exporter tables do not know",
+    )
+    ev.add_argument(
         "--scenario",
         default="karate",
         help="procedural scenario when no --motion is given (default: karate)",
@@ -178,6 +186,7 @@ def eventcap_eval(args: argparse.Namespace) -> int:
     """
     from mocaprig.acquire.mocks import load_mock_factory
     from mocaprig.errors import ValidationError
+    from mocaprig.process.body.bvh import load_joint_map
     from mocaprig.process.eventcap.evaluate import evaluate_take
 
     if args.threads < 1:
@@ -200,6 +209,7 @@ def eventcap_eval(args: argparse.Namespace) -> int:
         seed=args.seed,
         seconds=args.seconds,
         motion_path=args.motion,
+        joint_map=None if args.joint_map is None else load_joint_map(args.joint_map),
         scenario=args.scenario,
         start_s=args.start,
         progress=lambda done, total: status.show(

@@ -29,20 +29,16 @@ A batch spans two consecutive APS frames ``a`` and ``b``: tracking frames ``f = 
    corrections are interpolated across the frames in between, so every frame gets one (frame 0
    is not refined again when it came from the previous batch).
 
-Threads: the solvers' tensors are small, so :func:`run_batch` runs torch on
-``torch_threads`` (1) intra-op threads and restores the caller's setting on return.
+Threads: the solvers' matrices are small, so :func:`run_batch` runs torch and the BLAS behind
+numpy/scipy on ``threads`` (1) threads and restores the caller's settings on return.
 
-Measured (issue 15; simulated 4 s takes of CMU 02_04 jump, 02_05 strike, 05_02 dance, seeds
-1–3, realistic DAVIS simulator, synthetic detector with default noise; 8 chained batches from
-each take's fastest window; AE on every 10th frame, 15 body joints): AE 29.8 mm vs 43.8 mm
-``*_linear`` (0.68), ``*_all`` 38.7 mm; absolute MPJPE 65.7 vs 92.3 mm. Without the
-``swap_check`` (undoing whole-body left/right swaps of a detection against the handed-on
-pose) 39.8 mm (0.91). Batch continuity and
-refinement gave most of the earlier gain (3 takes: no continuity, no refinement 0.93; with both
-0.87); per-trajectory association matched per-frame association within 0.4 mm at a tenth of its
-time.
-Speed on the 2-core machine (benchmarks/eventcap_batch.py): 4.9–5.8 s per ordinary batch
-(batch fit ~2 s, refinement ~2.5 s), up to 12 s where the ``jump_check_mm`` refit runs.
+Measured (issue 15; simulated whole 4 s takes of CMU 02_04 jump, 02_05 strike, 05_02 dance,
+seeds 1–3, realistic DAVIS simulator, synthetic detector with default noise, 99 chained batches
+each; AE on every 10th frame, 15 body joints): AE 23.0 mm vs 31.2 mm ``*_linear`` (0.74; every
+take 0.67–0.79), ``*_all`` 36.8 mm; absolute MPJPE 46.9 vs 78.6 mm. Speed on the 2-core
+machine (benchmarks/eventcap_batch.py): 3.55 s per batch on average (batch fit ~1.4 s,
+refinement ~1.1 s), about twice that where the ``jump_check_mm`` refit runs. docs/eventcap.md
+has the table and what each choice below gained.
 
 Templates: the estimator is given the actor's :class:`~mocaprig.process.body.shape.BodyShape`
 (the paper's pre-scanned template). Times are the events' clock (µs).
@@ -61,6 +57,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 import torch
+from threadpoolctl import threadpool_limits
 
 from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body.kinematics import (
@@ -195,11 +192,13 @@ class EventcapOptions:
             also fitted from the held pose and the lower final energy wins (None: never).
         swap_check: With a ``start_pose``: replace a detection by its left/right mirror when
             the mirror agrees better with the pose handed on (whole-body swaps are a common
-            detector failure that no single-frame energy can see).
-        torch_threads: torch intra-op threads while the batch runs (restored afterwards; None
-            leaves torch's setting). The solvers' tensors are small (33×33 blocks), so extra
-            threads only spin against each other and other jobs: one thread measured several
-            times faster than two on a loaded 2-core machine.
+            detector failure that no single-frame energy can see). Without one (a take's first
+            batch), given a ``lookahead`` detection: a vote of frames a, b and the next.
+        threads: intra-op threads of torch and of the BLAS behind numpy/scipy while the batch
+            runs (both restored afterwards; None leaves them as they are). The solvers'
+            matrices are small (33×33 blocks, 400×33 Jacobians), so extra threads only spin
+            against each other and other jobs: on a loaded 2-core machine one thread measured
+            several times faster than two (an SVD of 400×33: 0.42 vs 3.1 ms).
         tracking: Tracker settings.
         batch: Batch-fit weights and solver settings.
         refinement: Refinement settings.
@@ -219,7 +218,7 @@ class EventcapOptions:
     continuity_weight: float = 1.0
     jump_check_mm: float | None = 150.0
     swap_check: bool = True
-    torch_threads: int | None = 1
+    threads: int | None = 1
     tracking: TrackingOptions = field(default_factory=TrackingOptions)
     batch: BatchFitOptions = field(default_factory=BatchFitOptions)
     refinement: RefineOptions = field(default_factory=RefineOptions)
@@ -231,8 +230,8 @@ class EventcapOptions:
         if int(self.association_rounds) < 1:
             msg = f"EventcapOptions.association_rounds must be >= 1, got {self.association_rounds}"
             raise ValidationError(msg)
-        if self.torch_threads is not None and int(self.torch_threads) < 1:
-            msg = f"EventcapOptions.torch_threads must be >= 1 or None, got {self.torch_threads}"
+        if self.threads is not None and int(self.threads) < 1:
+            msg = f"EventcapOptions.threads must be >= 1 or None, got {self.threads}"
             raise ValidationError(msg)
         if (
             int(self.refine_every) < 0
@@ -358,12 +357,7 @@ def _unswap(
         if _reprojection_px(pose_a, _mirrored(out[k]), shape, camera) < _SWAP_MARGIN * near:
             flagged.append(k)
     last = len(out) - 1
-    fits = [
-        fit_frame(d, camera, shape, initial_pose=pose_a, options=options)
-        for d in (out[last], _mirrored(out[last]))
-    ]
-    shifts = [_body_shift_mm(pose_a, f.pose, shape) for f in fits]
-    if shifts[1] < _SWAP_MARGIN * shifts[0]:
+    if _mirror_clearly_better(pose_a, out[last], shape, camera, options):
         flagged.append(last)
     if len(flagged) > 1:
         _log.info("both detections disagree with the pose handed on: keeping them as given")
@@ -371,6 +365,47 @@ def _unswap(
     for k in flagged:
         _log.info("frame %d: detection mirrored (left/right swap)", out[k].frame)
         out[k] = _mirrored(out[k])
+    return out
+
+
+def _mirror_clearly_better(
+    pose: F64, det: FrameDetections, shape: BodyShape, camera: EventCamera, options: BatchFitOptions
+) -> bool:
+    """Whether ``det``'s left/right mirror, fitted from ``pose``, moves the body clearly less
+    than ``det`` itself does (the test of :func:`_unswap` for a later detection)."""
+    fits = [
+        fit_frame(d, camera, shape, initial_pose=pose, options=options)
+        for d in (det, _mirrored(det))
+    ]
+    shifts = [_body_shift_mm(pose, f.pose, shape) for f in fits]
+    return shifts[1] < _SWAP_MARGIN * shifts[0]
+
+
+def _unswap_first(
+    det: list[FrameDetections],
+    lookahead: FrameDetections,
+    shape: BodyShape,
+    camera: EventCamera,
+    options: BatchFitOptions,
+) -> list[FrameDetections]:
+    """Undo a left/right swap in the first batch, where no pose is handed on: a vote of three.
+
+    Detections ``b`` and ``lookahead`` (the frame after ``b``) are each tested against the fit
+    of detection ``a``: when both prefer their mirror, ``a`` is the swapped one; when only
+    ``b`` does, ``b`` is (the next batch's :func:`_unswap` sees to a swapped ``lookahead``).
+    Two swaps among three frames defeat it (with the synthetic detector's 5 % rate: 0.7 %).
+    ``det`` is ``[detection a, detection b]``; a new list is returned.
+    """
+    out = list(det)
+    pose_a = fit_frame(out[0], camera, shape, options=options).pose
+    flip_b = _mirror_clearly_better(pose_a, out[1], shape, camera, options)
+    flip_c = _mirror_clearly_better(pose_a, lookahead, shape, camera, options)
+    if flip_b and flip_c:
+        _log.info("frame 0: detection mirrored (left/right swap; the next two frames agree)")
+        out[0] = _mirrored(out[0])
+    elif flip_b:
+        _log.info("frame %d: detection mirrored (left/right swap)", out[1].frame)
+        out[1] = _mirrored(out[1])
     return out
 
 
@@ -615,6 +650,7 @@ def run_batch(
     *,
     options: EventcapOptions | None = None,
     start_pose: npt.ArrayLike | None = None,
+    lookahead: Detection | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> BatchResult:
     """Run EventCap on one batch (module doc).
@@ -632,6 +668,9 @@ def run_batch(
         start_pose: The previous batch's last pose (33,), at frame ``a``: with
             ``options.continuity`` ``"prior"`` (default) S_0 starts there and is tied to it,
             with ``"off"`` it only seeds the frame-``a`` fit.
+        lookahead: Detections at the APS frame after ``b``. Without a ``start_pose`` and
+            with ``options.swap_check``, they vote with ``a`` and ``b`` on left/right swaps
+            (the first batch of a take has no pose handed on to check against).
         progress: Called with each stage's name as it starts.
 
     Raises:
@@ -639,22 +678,19 @@ def run_batch(
         ProcessingError: a stage failed (too few detections, a failed solve).
     """
     opt = options if options is not None else EventcapOptions()
-    before = torch.get_num_threads()
-    if opt.torch_threads is not None:
-        torch.set_num_threads(int(opt.torch_threads))
-    try:
+    if opt.threads is None:
         return _run_batch(
-            events,
-            frame_a,
-            frame_b,
-            detection_a,
-            detection_b,
-            camera,
-            shape,
-            opt,
-            start_pose,
-            progress,
-        )
+            events, frame_a, frame_b, detection_a, detection_b, camera, shape, opt, start_pose,
+            lookahead, progress,
+        )  # fmt: skip
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(opt.threads))
+    try:
+        with threadpool_limits(int(opt.threads), user_api="blas"):
+            return _run_batch(
+                events, frame_a, frame_b, detection_a, detection_b, camera, shape, opt,
+                start_pose, lookahead, progress,
+            )  # fmt: skip
     finally:
         torch.set_num_threads(before)
 
@@ -669,6 +705,7 @@ def _run_batch(
     shape: BodyShape,
     opt: EventcapOptions,
     start_pose: npt.ArrayLike | None,
+    lookahead: Detection | None,
     progress: Callable[[str], None] | None,
 ) -> BatchResult:
     n_us = frame_b.t_us - frame_a.t_us
@@ -702,6 +739,8 @@ def _run_batch(
         prior = _pose_prior(pose_a, shape, camera, opt.continuity_weight)
         det = [prior, det[1]] if opt.continuity == "replace" else [prior, *det]
     else:
+        if start_pose is None and lookahead is not None and opt.swap_check:
+            det = _unswap_first(det, frame_detections(lookahead, 2 * n), shape, camera, opt.batch)
         pose_a = fit_frame(det[0], camera, shape, initial_pose=start_pose, options=opt.batch).pose
     chained = start_pose is not None and opt.continuity != "off"
     if chained and opt.swap_check:

@@ -133,6 +133,7 @@ def run_take(
                 shape,
                 options=opt,
                 start_pose=prev,
+                lookahead=detections[k + 2] if prev is None and k + 2 < len(frames) else None,
             )
         except ProcessingError as err:
             msg = f"EventCap batch {k} ({a.t_us}–{b.t_us} µs) failed: {err}"

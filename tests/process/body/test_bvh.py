@@ -200,6 +200,14 @@ _GOOD = _chain_bvh(
         (_GOOD.replace("Frames: 2", "Frames: 3"), r"declares 3 frames, found 2"),
         (_GOOD.replace("Frames: 2", "Frames: 1"), r"more frame lines than the 1"),
         (_GOOD.replace("Frame Time: 0.01", "Frame Time: -1"), r"Frame Time must be > 0"),
+        (_GOOD.replace("Frame Time: 0.01", "Frame Time: inf"), r"Frame Time must be > 0"),
+        (_GOOD.replace("Frames: 2", "Frames: nan"), r"Frames must be a positive integer"),
+        (_GOOD.replace("Frames: 2", "Frames: 1e999"), r"Frames must be a positive integer"),
+        # A hostile count is refused before anything the size of it is allocated.
+        (
+            _GOOD.replace("Frames: 2", "Frames: 9223372036854775808"),
+            r"declares \d+ frames, found 2",
+        ),
         (
             _GOOD.replace("Frame Time: 0.01", "Frametime 0.01"),
             r"line 23: expected 'Frame Time: <number>'",

@@ -9,6 +9,7 @@ import numpy.typing as npt
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_info
 
 from mocaprig.calib.camera_model import project_points
 from mocaprig.drivers_mock.davis240c_sim import DavisSimulator
@@ -27,6 +28,7 @@ from mocaprig.process.eventcap.pipeline import (
     _mirrored,
     _pose_prior,
     _unswap,
+    _unswap_first,
     frame_detections,
     run_batch,
 )
@@ -171,18 +173,20 @@ def test_start_pose_ties_the_first_frame_to_the_previous_batch(
     assert chained.refined == result.refined - 1
 
 
-def test_batch_is_deterministic_and_leaves_torch_threads_alone(
+def test_batch_is_deterministic_and_leaves_threads_alone(
     batch: _Batch, start_pose: npt.NDArray[np.float64]
 ) -> None:
     cheap = EventcapOptions(refine_every=0, association_rounds=1)
     first = _run(batch, start_pose, cheap)
     before = torch.get_num_threads()
+    blas_before = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
     torch.set_num_threads(2)
     try:
         again = _run(batch, start_pose, cheap)
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+    assert [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"] == blas_before
     np.testing.assert_array_equal(again.poses, first.poses)
 
 
@@ -254,6 +258,22 @@ def test_unswap_trusts_two_detections_that_both_disagree_with_the_handed_on_pose
     given += [_mirrored(d) for d in true]
     out = _unswap(given, start_pose, batch.shape, batch.camera, EventcapOptions().batch)
     assert all(got is want for got, want in zip(out, given, strict=True))
+
+
+def test_first_batch_vote_undoes_a_swap_of_either_detection(batch: _Batch) -> None:
+    # No pose handed on: detections a, b and the next frame's vote. Here the next frame's
+    # detection is b's again (it agrees with the true a and b).
+    n = (batch.frame_b.t_us - batch.frame_a.t_us) // 1000
+    true = [frame_detections(batch.detection_a, 0), frame_detections(batch.detection_b, n)]
+    look = frame_detections(batch.detection_b, 2 * n)
+    swapped = [_mirrored(d) for d in true]
+    opt = EventcapOptions().batch
+    for given in (list(true), [swapped[0], true[1]], [true[0], swapped[1]]):
+        out = _unswap_first(given, look, batch.shape, batch.camera, opt)
+        for got, want in zip(out, true, strict=True):
+            np.testing.assert_allclose(got.keypoints2d_px, want.keypoints2d_px)
+            np.testing.assert_allclose(got.confidence, want.confidence)
+    assert given[1] is swapped[1]  # the input list is not modified
 
 
 def test_batch_rejects_frames_not_whole_steps_apart(batch: _Batch) -> None:

@@ -1,0 +1,79 @@
+"""The checkpoint reader on damaged files (found by ``benchmarks/fuzz_readers.py``): a clean
+:class:`ProcessingError` naming the file, before anything the file says is allocated."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from mocaprig.errors import ProcessingError
+from mocaprig.process.body import DEMOCAP_JOINTS, MARKER_NAMES
+from mocaprig.process.democap.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from mocaprig.process.democap.config import DemocapConfig
+from mocaprig.process.democap.model import build_network
+
+
+@pytest.fixture
+def saved(tmp_path: Path, tiny_config: DemocapConfig) -> dict[str, Any]:
+    torch.manual_seed(0)
+    model = build_network(
+        tiny_config, num_markers=len(MARKER_NAMES), num_joints=len(DEMOCAP_JOINTS)
+    )
+    p = tmp_path / "ok.pt"
+    save_checkpoint(Checkpoint(tiny_config, model), p)
+    data: dict[str, Any] = torch.load(p, weights_only=True)
+    return data
+
+
+def _write(tmp_path: Path, data: dict[str, Any]) -> Path:
+    p = tmp_path / "bad.pt"
+    torch.save(data, p)
+    return p
+
+
+def test_a_config_asking_for_a_huge_network_is_refused_at_once(
+    tmp_path: Path, saved: dict[str, Any]
+) -> None:
+    saved["config"]["stem_units"] = 2**62
+    t0 = time.perf_counter()
+    with pytest.raises(ProcessingError, match=r"bad\.pt: the stored config asks for \d+ network"):
+        load_checkpoint(_write(tmp_path, saved))
+    assert time.perf_counter() - t0 < 2.0
+
+
+def test_a_config_with_wider_layers_than_stored_is_refused(
+    tmp_path: Path, saved: dict[str, Any]
+) -> None:
+    saved["config"]["stem_channels"] = 100_000
+    with pytest.raises(ProcessingError, match=r"bad\.pt: the weights do not match the stored"):
+        load_checkpoint(_write(tmp_path, saved))
+
+
+def test_a_weight_viewing_more_values_than_stored_is_refused(
+    tmp_path: Path, saved: dict[str, Any]
+) -> None:
+    key = next(iter(saved["model"]))
+    saved["model"][key] = torch.zeros(1).expand(1 << 20, 1 << 20)
+    with pytest.raises(ProcessingError, match=rf"bad\.pt: weight {key} .*claims more values"):
+        load_checkpoint(_write(tmp_path, saved))
+
+
+def test_a_weight_holding_nan_is_refused(tmp_path: Path, saved: dict[str, Any]) -> None:
+    key = next(k for k, v in saved["model"].items() if v.is_floating_point())
+    saved["model"][key] = torch.full_like(saved["model"][key], math.nan)
+    with pytest.raises(ProcessingError, match=rf"bad\.pt: weight {key} holds NaN"):
+        load_checkpoint(_write(tmp_path, saved))
+
+
+@pytest.mark.parametrize(("key", "value"), [("joint_names", -1), ("epoch", "x"), ("history", 5)])
+def test_a_damaged_entry_is_refused_by_name(
+    tmp_path: Path, saved: dict[str, Any], key: str, value: object
+) -> None:
+    saved[key] = value
+    with pytest.raises(ProcessingError, match=r"bad\.pt"):
+        load_checkpoint(_write(tmp_path, saved))
