@@ -506,8 +506,8 @@ _HINTS: Mapping[str, tuple[str, ...]] = {
 
 
 def _example(ours: str, joint_names: Sequence[str]) -> str:
-    """A plausible BVH joint for ``ours`` (a hint word and, for a side, its side), or a
-    placeholder."""
+    """A plausible BVH joint for ``ours`` (a hint word and, for a side, its side) for the error
+    message's example line, else a fill-in (``<its Hips joint>``) for the user to replace."""
     side = "left" if ours.startswith("Left") else "right" if ours.startswith("Right") else ""
     for n in joint_names:
         low = n.lower()

@@ -39,6 +39,7 @@ from mocaprig.acquire.device_id import DeviceId
 from mocaprig.acquire.recorder import Attachment, Recorder
 from mocaprig.acquire.recording_format import SceneUpdateMsg
 from mocaprig.calib.calibration import Calibration, calibration_bytes
+from mocaprig.calib.calibration_attachment import ATTACHMENT_NAME
 from mocaprig.errors import ProcessingError
 from mocaprig.process.democap.instants import INSTANT_TOLERANCE, GroupedInstant, InstantGrouper
 from mocaprig.process.democap.live import (
@@ -214,7 +215,7 @@ def run_live(
                     metadata={LIVE_METADATA_NAME: _metadata(labels, calibration, pred)},
                     attachments=[
                         Attachment(
-                            "calibration.toml", "application/toml", calibration_bytes(calibration)
+                            ATTACHMENT_NAME, "application/toml", calibration_bytes(calibration)
                         )
                     ],
                 )

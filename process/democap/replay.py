@@ -68,6 +68,7 @@ from mocaprig.acquire.recorder import Attachment, Recorder
 from mocaprig.acquire.recording import Recording
 from mocaprig.acquire.recording_format import SceneUpdateMsg
 from mocaprig.calib.calibration import Calibration, read_calibration
+from mocaprig.calib.calibration_attachment import ATTACHMENT_NAME
 from mocaprig.errors import CalibrationError, ProcessingError, RecordingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
 from mocaprig.process.democap.evaluate import EVAL_JOINTS
@@ -81,6 +82,7 @@ from mocaprig.process.democap.instants import (
 from mocaprig.process.democap.live import LiveCamera, LivePipeline
 from mocaprig.process.democap.simdata import CAPTURE_BOX_M
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
+from mocaprig.process.outputs import replace_atomically
 from mocaprig.process.scene import points_scene
 
 __all__ = [
@@ -550,14 +552,6 @@ def _labels() -> tuple[list[str], list[str]]:
     return list(MARKER_NAMES), [f"{JOINT_LABEL_PREFIX}{j}" for j in DEMOCAP_JOINTS]
 
 
-def _replace_atomically(tmp: Path, dst: Path, overwrite: bool) -> None:
-    if dst.exists() and not overwrite:
-        tmp.unlink(missing_ok=True)
-        msg = f"{dst} appeared while writing; pass --overwrite to replace it"
-        raise ProcessingError(msg)
-    tmp.replace(dst)
-
-
 def write_replay_csv(result: ReplayResult, path: str | Path, *, overwrite: bool = False) -> Path:
     """Write the replay as CSV (module doc): ``time_s`` then ``<name>_x/_y/_z`` in mm.
 
@@ -579,7 +573,7 @@ def write_replay_csv(result: ReplayResult, path: str | Path, *, overwrite: bool 
         for t, row in zip(result.t_ref_ns.tolist(), values * 1e3, strict=True):
             sec, ns = divmod(int(t), 1_000_000_000)
             fh.write(f"{sec}.{ns:09d}," + ",".join(f"{v:.3f}" for v in row) + "\n")
-    _replace_atomically(tmp, dst, overwrite)
+    replace_atomically(tmp, dst, overwrite=overwrite)
     _log.info("wrote %s (%d instants)", dst, result.instants)
     return dst
 
@@ -684,7 +678,7 @@ def write_scene_mcap(
     attachments = []
     if calibration is not None:
         attachments.append(
-            Attachment("calibration.toml", "application/toml", calibration_bytes(calibration))
+            Attachment(ATTACHMENT_NAME, "application/toml", calibration_bytes(calibration))
         )
     # The recorder's own diagnostics are stamped on the results' clock (the reference clock),
     # so the whole file has one time base.
@@ -733,7 +727,7 @@ def write_scene_mcap(
                     )
                 for handle, scene in msgs:
                     rec.put_wait(handle, scene, log_time_ns=t, sequence=i)
-        _replace_atomically(tmp, dst, overwrite)
+        replace_atomically(tmp, dst, overwrite=overwrite)
     except ProcessingError:
         raise
     except Exception as err:

@@ -52,6 +52,7 @@ from mocaprig.acquire.recorder import Attachment, Recorder
 from mocaprig.acquire.recording import Recording
 from mocaprig.acquire.recording_format import SceneUpdateMsg
 from mocaprig.calib.calibration import Calibration, CameraCalibration, read_calibration
+from mocaprig.calib.calibration_attachment import ATTACHMENT_NAME
 from mocaprig.errors import CalibrationError, ProcessingError, RecordingError, ValidationError
 from mocaprig.process.body.kinematics import EVENTCAP_KEYPOINTS
 from mocaprig.process.body.shape import BodyShape
@@ -64,6 +65,7 @@ from mocaprig.process.eventcap.detections import (
 )
 from mocaprig.process.eventcap.pipeline import ApsFrame, EventcapOptions
 from mocaprig.process.eventcap.take import TakeResult, run_take
+from mocaprig.process.outputs import replace_atomically
 from mocaprig.process.scene import capsule_scene, points_scene
 
 __all__ = [
@@ -732,14 +734,6 @@ def run_eventcap(
 # ------------------------------------------------------------------------------ writers
 
 
-def _replace_atomically(tmp: Path, dst: Path, overwrite: bool) -> None:
-    if dst.exists() and not overwrite:
-        tmp.unlink(missing_ok=True)
-        msg = f"{dst} appeared while writing; pass --overwrite to replace it"
-        raise ProcessingError(msg)
-    tmp.replace(dst)
-
-
 def write_results_c3d(
     result: EventcapRunResult, path: str | Path, *, overwrite: bool = False
 ) -> Path:
@@ -824,7 +818,7 @@ def write_results_mcap(
     attachments = []
     if calibration is not None:
         attachments.append(
-            Attachment("calibration.toml", "application/toml", calibration_bytes(calibration))
+            Attachment(ATTACHMENT_NAME, "application/toml", calibration_bytes(calibration))
         )
     meta_record = {
         "software_version": __version__,
@@ -876,7 +870,7 @@ def write_results_mcap(
                         caps = capsules(result.poses[i : i + _CAPSULE_BLOCK], result.shape)
                     scene = template_scene(frame, t, caps.a_m[k], caps.b_m[k], caps.radius_m)
                     rec.put_wait(ht, scene, log_time_ns=t, sequence=i)
-        _replace_atomically(tmp, dst, overwrite)
+        replace_atomically(tmp, dst, overwrite=overwrite)
     except ProcessingError:
         raise
     except Exception as err:
