@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.errors import DeviceError, RecordingError
-from mocaprig.progress import StatusLine
+from mocaprig.progress import ProgressBar, StatusLine
 
 if TYPE_CHECKING:
     from mocaprig.acquire.davis240c import Davis240C
@@ -146,11 +146,16 @@ class DecodeSummary:
 
 
 def decode_raw_file(
-    raw_path: str | Path, out_path: str | Path, *, chunk_bytes: int = 1 << 20
+    raw_path: str | Path,
+    out_path: str | Path,
+    *,
+    chunk_bytes: int = 1 << 20,
+    progress: Callable[[int, int], None] | None = None,
 ) -> DecodeSummary:
     """Decode a raw EP 0x82 capture into an .npz (layout: ``mocaprig davis decode --help``).
 
-    The file is read and decoded ``chunk_bytes`` at a time through one decoder.
+    The file is read and decoded ``chunk_bytes`` at a time through one decoder;
+    ``progress(bytes_decoded, bytes_total)`` after each chunk.
 
     Raises:
         RecordingError: the input cannot be read or the output cannot be written.
@@ -174,6 +179,8 @@ def decode_raw_file(
     events, imu, specials = [], [], []
     frames: list[ApsFrame] = []
     try:
+        total = raw_path.stat().st_size
+        done = 0
         with raw_path.open("rb") as fh:
             while chunk := fh.read(chunk_bytes):
                 pkt = dec.decode(chunk)
@@ -181,6 +188,9 @@ def decode_raw_file(
                 imu.append(pkt.imu)
                 specials.append(pkt.specials)
                 frames.extend(pkt.frames)
+                done += len(chunk)
+                if progress is not None:
+                    progress(done, total)
     except OSError as err:
         msg = f"cannot read raw capture {raw_path}: {err}"
         raise RecordingError(msg) from err
@@ -299,7 +309,10 @@ def _open_davis(*, mock: bool, serial: str | None, **options: Any) -> Davis240C:
 
 def davis_decode(raw: Path, out: Path, *, as_json: bool) -> int:
     """``mocaprig davis decode``: exit code 0."""
-    summary = decode_raw_file(raw, out)
+    bar = ProgressBar("decode", unit="kB")
+    summary = decode_raw_file(
+        raw, out, progress=lambda done, total: bar(done // 1000, total // 1000)
+    )
     if as_json:
         emit_json(summary.as_dict())
         return 0

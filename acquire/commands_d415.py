@@ -28,6 +28,7 @@ from mocaprig.acquire.depth_camera import DepthCamera, FrameSet, SensorOptions, 
 from mocaprig.acquire.realsense import METADATA_HINT
 from mocaprig.cli import add_json_flag, emit_json, usage_handler
 from mocaprig.errors import ValidationError
+from mocaprig.progress import current_progress_mode
 
 __all__ = ["check_sync", "list_cameras", "register_d415", "stream"]
 
@@ -131,6 +132,7 @@ def stream(
     rates: dict[str, _Rate] = {c.info.serial: _Rate() for c in cameras}
     next_print = [1.0]
     t0: list[int] = []
+    live_lines = not as_json and current_progress_mode() != "never"  # quiet under -q
 
     def on_frameset(fs: FrameSet) -> None:
         r = rates[fs.serial]
@@ -144,7 +146,7 @@ def stream(
         r.last_ns = now
         if not t0:
             t0.append(now)
-        if not as_json and (now - t0[0]) / 1e9 >= next_print[0]:
+        if live_lines and (now - t0[0]) / 1e9 >= next_print[0]:
             next_print[0] += 1.0
             line = "  ".join(
                 f"{s}: {v.window_frames:3d} fps {v.drops} drops" for s, v in rates.items()
@@ -221,8 +223,10 @@ def check_sync(
     """``mocaprig d415 check-sync``: 0 when every camera is locked, 1 otherwise."""
     cameras = _open(mock=mock, seed=seed, fault=fault, seconds=seconds)
 
+    live_lines = not as_json and current_progress_mode() != "never"  # quiet under -q
+
     def live(h: SyncHealth) -> None:
-        if as_json:
+        if not live_lines:
             return
         states = []
         for s, c in h.cameras.items():

@@ -10,16 +10,22 @@ the export to files (:mod:`mocaprig.acquire.export`); device modules are importe
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
+import signal
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from mocaprig.acquire.export import ExportFormat, ExportResult, export_topic
-from mocaprig.acquire.record_session import run_recording
+from mocaprig.acquire.live_view import LiveView
+from mocaprig.acquire.mocks import load_mock_factory
+from mocaprig.acquire.record_session import MockFaults, RecordingSummary, run_recording
 from mocaprig.acquire.recorder import StreamSource
 from mocaprig.acquire.rpg_text import import_events_txt
 from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.progress import ProgressBar
 
 if TYPE_CHECKING:
     from mocaprig.acquire.recording import RecordingInfo, TimeBase
@@ -29,6 +35,7 @@ __all__ = [
     "import_events",
     "info_layout",
     "record",
+    "record_outcome",
     "recording_info",
     "recover_command",
     "register_export",
@@ -61,38 +68,87 @@ def record(
     min_free_mb: float = 512.0,
     as_json: bool = False,
     sources: Sequence[StreamSource] | None = None,
+    mock_faults: MockFaults | str | None = None,
+    live: bool = False,
+    live_port: int = 8765,
+    live_host: str = "127.0.0.1",
 ) -> int:
     """``mocaprig record``: record the rig (a rig file's devices, the mock rig, or given
     ``sources``) into ``out`` (:func:`mocaprig.acquire.record_session.run_recording`).
 
-    Returns 0 when the recording ended as asked (stopping early raises RecordingError).
+    ``mock_faults``: faults to inject into the mock rig, a schedule or its text
+    (``--mock-faults``, loaded through the ``mocaprig.mocks`` entry point ``faults``).
+    ``live``: serve the streams to Foxglove on ``live_host:live_port`` while recording
+    (:class:`mocaprig.acquire.live_view.LiveView`; RecordingError when foxglove-sdk is missing
+    or the port is taken).
+
+    Returns the exit code of :func:`record_outcome` (0: as asked; 3: a device was lost, its
+    streams have gaps; 128 + the signal: stopped by SIGINT/SIGTERM); a full disk or a write
+    error raises RecordingError (the file is finished, or ends at its last complete record).
     """
-    summary = run_recording(
-        out=out,
-        seconds=seconds,
-        mock=mock,
-        rig=rig,
-        scenario=scenario,
-        seed=seed,
-        cameras=cameras,
-        syncbox=syncbox,
-        compression=compression,
-        split_seconds=split_seconds,
-        split_mb=split_mb,
-        min_free_mb=min_free_mb,
-        sources=sources,
+    faults: MockFaults | None = (
+        load_mock_factory("faults")(mock_faults) if isinstance(mock_faults, str) else mock_faults
     )
-    if as_json:
-        emit_json(summary.as_dict())
-    else:
-        files = ", ".join(str(p) for p in summary.files)
-        print(
-            f"recorded {summary.seconds:.1f} s, {summary.bytes / 1e6:.1f} MB, "
-            f"{summary.drops_total} dropped -> {files}"
+    view = LiveView(host=live_host, port=live_port) if live else None
+    with view if view is not None else contextlib.nullcontext():
+        if view is not None:
+            print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        summary = run_recording(
+            out=out,
+            seconds=seconds,
+            mock=mock,
+            rig=rig,
+            scenario=scenario,
+            seed=seed,
+            cameras=cameras,
+            syncbox=syncbox,
+            compression=compression,
+            split_seconds=split_seconds,
+            split_mb=split_mb,
+            min_free_mb=min_free_mb,
+            sources=sources,
+            mock_faults=faults,
+            live=view,
         )
+    code, line = record_outcome(summary)
+    if as_json:
+        emit_json({**summary.as_dict(), "exit_code": code, "outcome": line})
+    else:
+        print(line)
         for st in summary.streams:
             print(f"  {st.topic:<36} {st.written:>8} msgs  {st.dropped:>6} dropped")
-    return 0
+        if summary.live is not None:
+            lv = summary.live
+            print(f"live view: {lv.published_total} messages published, {lv.dropped_total} of "
+                  "its own dropped (the recording's drops are above)")  # fmt: skip
+    return code
+
+
+def record_outcome(summary: RecordingSummary) -> tuple[int, str]:
+    """The exit code and the one line that say how a recording ended.
+
+    0: as asked; 3: a device was lost (its streams have a gap; the faults are in the file);
+    128 + signal number (130 SIGINT, 143 SIGTERM): stopped by a signal, the file finished.
+    """
+    files = ", ".join(str(p) for p in summary.files)
+    done = (
+        f"{summary.seconds:.1f} s, {summary.bytes / 1e6:.1f} MB, {summary.drops_total} dropped "
+        f"-> {files}"
+    )
+    lost = summary.device_faults
+    back = {f.device for f in summary.faults if f.kind == "reconnected"}
+    devices = sorted({f.device for f in lost})
+    faults = ""
+    if devices:
+        words = [f"{d} lost{' and back' if d in back else ''}" for d in devices]
+        faults = f"; {len(lost)} device fault(s): {', '.join(words)} (`mocaprig info` lists them)"
+    if summary.signal is not None:
+        signum = int(getattr(signal.Signals, summary.signal, signal.SIGTERM))
+        return 128 + signum, f"stopped by {summary.signal}: recorded {done}, file finished{faults}"
+    if lost:
+        return 3, f"recorded {done}{faults}"
+    return 0, f"recorded {done}"
 
 
 # -------------------------------------------------------------------------------------------
@@ -125,6 +181,14 @@ def recording_info(path: Path, *, as_json: bool) -> int:
         print(
             f"  {s.topic:<36} {s.schema_name:<26} {s.messages:>8} {s.rate_hz:>9.1f} "
             f"{drops:>6} {s.counter_gaps:>6}"
+        )
+    t0 = inf.start_ns or 0
+    for f in inf.faults:
+        print(f"  fault: {(f.t_ns - t0) / 1e9:+8.3f} s  {f.device:<24} {f.kind}: {f.detail}")
+    for g in inf.gaps:
+        until = f"{(g.end_ns - t0) / 1e9:.3f} s" if g.back else "the end (never back)"
+        print(
+            f"  gap: {g.device:<24} {(g.start_ns - t0) / 1e9:.3f} s .. {until} ({g.seconds:.3f} s)"
         )
     for name in inf.devices:
         print(f"  device: {name}")
@@ -251,9 +315,18 @@ def export(
     ``txt`` writes RPG ``t x y p`` lines with the stored ns times (9 decimals) and, only with
     ``txt_header``, a first ``width height`` line.
     """
+    unit = {"txt": "events", "npz": "arrays"}.get(fmt, "images")
+    bar = ProgressBar(f"export {topic_name}", unit=unit)
     res = export_topic(
-        path, topic_name=topic_name, fmt=fmt, out=out, fps=fps, txt_header=txt_header
+        path,
+        topic_name=topic_name,
+        fmt=fmt,
+        out=out,
+        fps=fps,
+        txt_header=txt_header,
+        progress=bar,
     )
+    bar.finish()
     print(_export_summary(res))
     return 0
 
@@ -294,7 +367,20 @@ def register_record(subparsers: Any) -> None:
         "  mocaprig record --rig dry-run.toml --seconds 5 --out dry.mcap   # mock = true\n"
         "  mocaprig record --mock --seconds 10 --out session.mcap\n"
         "  mocaprig record --mock --scenario default --cameras 2 --seconds 5 --out s.mcap\n"
-        "  mocaprig record --mock --seconds 600 --split-seconds 60 --out long.mcap\n",
+        "  mocaprig record --mock --seconds 600 --split-seconds 60 --out long.mcap\n"
+        "  mocaprig record --rig rig.toml --seconds 60 --out s.mcap --live   # Foxglove live\n"
+        "  mocaprig record --mock --cameras 4 --seconds 30 --out s.mcap --live --port 8766\n"
+        "  mocaprig record --mock --seconds 5 --out f.mcap \\\n"
+        "      --mock-faults davis-unplug@1+0.5,d415-disconnect@2+1,syncbox-unplug@1.5+0.5\n"
+        "\nA device lost while recording (unplugged, cable pulled) is re-opened when it comes\n"
+        "back and goes on in the same file; every fault and gap is in the file (/faults,\n"
+        "`mocaprig info` lists them). Exit 0: as asked; 3: a device was lost (gaps); 130/143:\n"
+        "stopped by SIGINT/SIGTERM, file finished; 1: error (a full disk: the file is\n"
+        "finished, or ends at its last complete record).\n"
+        "\n--live serves the streams to Foxglove (Open connection -> Foxglove WebSocket,\n"
+        "ws://127.0.0.1:8765): D415 IR/depth and DAVIS frames at <= 15 Hz per camera, a 33 ms\n"
+        "event image, IMU plots, /live/status; it reads behind the recorder and drops its own\n"
+        "frames, never the recording's (needs foxglove-sdk: pip install 'mocaprig[live]').\n",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
@@ -311,6 +397,23 @@ def register_record(subparsers: Any) -> None:
     p.add_argument("--split-seconds", type=float, help="start a new numbered file every N s")
     p.add_argument("--split-mb", type=float, help="start a new numbered file every N MB")
     p.add_argument("--min-free-mb", type=float, default=512.0, help="stop when less is free")
+    p.add_argument(
+        "--mock-faults",
+        metavar="SPEC",
+        help="mock rig only: inject faults, KIND@AT[+FOR][:TARGET] comma-separated (s), kinds "
+        "davis-unplug, d415-disconnect, syncbox-unplug, disk-full",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="serve the streams to Foxglove over WebSocket while recording (docs/live-view.md)",
+    )
+    p.add_argument("--port", type=int, default=8765, help="--live: TCP port (0: any free port)")
+    p.add_argument(
+        "--live-host",
+        default="127.0.0.1",
+        help="--live: address to listen on (0.0.0.0: every interface; default local only)",
+    )
     add_json_flag(p)
     p.set_defaults(
         func=lambda a: record(
@@ -327,6 +430,10 @@ def register_record(subparsers: Any) -> None:
             split_mb=a.split_mb,
             min_free_mb=a.min_free_mb,
             as_json=a.json,
+            mock_faults=a.mock_faults,
+            live=a.live,
+            live_port=a.port,
+            live_host=a.live_host,
         )
     )
 

@@ -5,6 +5,7 @@ MP4 (images).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -48,6 +49,7 @@ def export_topic(
     out: Path,
     fps: float = 30.0,
     txt_header: bool = False,
+    progress: Callable[[int, int], None] | None = None,
 ) -> ExportResult:
     """Export one topic of the recording ``path`` to npz / txt (events) / png (images) / mp4
     (images).
@@ -55,6 +57,9 @@ def export_topic(
     ``txt`` writes RPG ``t x y p`` lines with the stored ns times (9 decimals) and, only with
     ``txt_header``, a first ``width height`` line. ``png`` writes one file per image into the
     folder ``out`` (16-bit for 16-bit images); ``mp4`` scales each frame to 8 bits.
+
+    ``progress`` is called as ``(images_written, 0)`` after each image (``png``, ``mp4``: the
+    count is not known ahead) and ``(count, count)`` when the export is written.
 
     Raises:
         RecordingError: ``out`` exists (a PNG file of the export, for ``png``), no such topic, or
@@ -80,18 +85,26 @@ def export_topic(
             header = (w, h) if txt_header and w is not None and h is not None else None
             with out.open("x", encoding="ascii") as f:
                 export_events_txt(ev, f, t_ns=t_ns, header=header)
+            _report(progress, int(ev.size), int(ev.size))
             return ExportResult(out, fmt, count=int(ev.size))
         if fmt == "npz":
             arrays = _topic_arrays(rec, topic_name, schema)
             with out.open("xb") as f:
                 np.savez_compressed(f, **arrays)  # type: ignore[arg-type]
             shapes = tuple((k, tuple(int(n) for n in v.shape)) for k, v in arrays.items())
+            _report(progress, len(arrays), len(arrays))
             return ExportResult(out, fmt, shapes=shapes)
         if schema != ImageMsg.SCHEMA.name:
             msg = f"--format {fmt} is for image topics; {topic_name} holds {schema}"
             raise RecordingError(msg)
-        n = _export_images(rec, topic_name, fmt, out, fps)
+        n = _export_images(rec, topic_name, fmt, out, fps, progress)
+        _report(progress, n, n)
         return ExportResult(out, fmt, count=n, fps=fps if fmt == "mp4" else 0.0)
+
+
+def _report(progress: Callable[[int, int], None] | None, done: int, total: int) -> None:
+    if progress is not None:
+        progress(done, total)
 
 
 def _event_size(rec: Any, topic_name: str) -> tuple[int | None, int | None]:
@@ -132,9 +145,16 @@ def _to8(img: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
     return (img.astype(np.float64) * (255.0 / hi if hi > 0 else 0.0)).astype(np.uint8)
 
 
-def _export_images(rec: Any, topic_name: str, fmt: str, out: Path, fps: float) -> int:
+def _export_images(
+    rec: Any,
+    topic_name: str,
+    fmt: str,
+    out: Path,
+    fps: float,
+    progress: Callable[[int, int], None] | None,
+) -> int:
     """Write the images of ``topic_name`` as PNG files into the folder ``out`` or as an MP4
-    video; return the number of files or frames."""
+    video; return the number of files or frames (``progress(n, 0)`` after each)."""
     import cv2
 
     n = 0
@@ -147,6 +167,7 @@ def _export_images(rec: Any, topic_name: str, fmt: str, out: Path, fps: float) -
                 raise RecordingError(msg)
             cv2.imwrite(str(p), m.image)  # 16-bit PNG for mono16/16UC1
             n += 1
+            _report(progress, n, 0)
         return n
     writer: Any = None
     try:
@@ -161,6 +182,7 @@ def _export_images(rec: Any, topic_name: str, fmt: str, out: Path, fps: float) -
                     raise RecordingError(msg)
             writer.write(frame)
             n += 1
+            _report(progress, n, 0)
     finally:
         if writer is not None:
             writer.release()

@@ -3,6 +3,11 @@
 :func:`run_recording` records the devices a rig file lists (or the simulated rig's mocks, or
 given sources) into one MCAP file (or several when split) and closes what it opened;
 :func:`record_to_file` is the recording step alone, for callers that open the devices themselves.
+
+Every device is opened with a way to open it again (by serial, as configured), so a device lost
+mid-recording is re-opened when it comes back (:mod:`mocaprig.acquire.record_sources`). On the
+mock rig, :class:`MockFaults` (``drivers_mock.faults.FaultSchedule``) wraps the mocks' real
+boundaries (pyusb backend, depth camera, serial port, output file) to inject faults.
 """
 
 from __future__ import annotations
@@ -11,13 +16,15 @@ import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Literal, TextIO
+from typing import Any, BinaryIO, Literal, Protocol, TextIO
 
+from mocaprig.acquire.live_view import LiveStats, LiveView
 from mocaprig.acquire.record_sources import DavisSource, DepthCameraSource, SyncBoxSource
 from mocaprig.acquire.recorder import (
     Attachment,
+    Fault,
     Recorder,
     StreamSource,
     record_sources,
@@ -28,9 +35,39 @@ from mocaprig.acquire.rig_file import RigFile, load_rig_file
 from mocaprig.errors import DeviceError, DeviceNotFoundError, ValidationError
 from mocaprig.progress import StatusLine
 
-__all__ = ["RecordingSummary", "record_to_file", "run_recording"]
+__all__ = ["MockFaults", "RecordingSummary", "record_to_file", "run_recording"]
 
 _log = logging.getLogger(__name__)
+
+
+class MockFaults(Protocol):
+    """Fault injection at the mock rig's real boundaries (``drivers_mock.faults.FaultSchedule``;
+    acquire never imports it). Each method wraps one boundary; fault times count from
+    :meth:`start`, called when the recording starts."""
+
+    def start(self) -> None:
+        """Start the fault clock (idempotent)."""
+        ...
+
+    def davis_backend(self, backend: Any) -> Any:
+        """The DAVIS mock's pyusb ``IBackend`` behind the fault proxy."""
+        ...
+
+    def depth_camera(self, cam: Any) -> Any:
+        """A mock D415 (``DepthCamera``) behind the fault proxy."""
+        ...
+
+    def find_depth_camera(self, serial: str) -> Any:
+        """The D415 ``serial`` again after it was lost (DeviceNotFoundError while it is not)."""
+        ...
+
+    def serial_port(self, port: str) -> str:
+        """A ``serial.serial_for_url`` URL reaching ``port`` through the fault proxy."""
+        ...
+
+    def open_file(self, path: Path, mode: str) -> BinaryIO:
+        """The recorder's output file, through the fault proxy (``Recorder(open_file=...)``)."""
+        ...
 
 
 class _StatusLine:
@@ -51,7 +88,7 @@ class _StatusLine:
         before = {s.topic: s.written for s in prev[1].streams}
         parts = []
         for s in st.streams:
-            if s.topic in ("/diagnostics", "/log"):
+            if s.topic in ("/diagnostics", "/log", "/faults"):
                 continue
             rate = (s.written - before.get(s.topic, 0)) / dt
             short = s.topic.rsplit("/", 2)
@@ -74,23 +111,26 @@ def _mock_sources(
     cameras: int,
     syncbox: bool,
     stack: list[tuple[str, Any]],
+    faults: MockFaults | None = None,
 ) -> list[StreamSource]:
     from mocaprig.acquire.camera_backends import open_cameras
-    from mocaprig.acquire.davis240c import Davis240C, load_mock_backend
+    from mocaprig.acquire.davis240c import load_mock_backend
     from mocaprig.acquire.depth_camera import SensorOptions, StreamConfig, SyncMode
 
     sources: list[StreamSource] = []
     # "asap": the DAVIS simulator cannot render in real time on a small machine.
     backend = load_mock_backend(scenario=scenario, seed=seed, pacing="asap", seconds=seconds + 5.0)
-    cam = Davis240C.open(backend=backend)
-    stack.append(("davis/" + cam.serial, cam))
-    sources.append(DavisSource(cam))
+    if faults is not None:
+        backend = faults.davis_backend(backend)
+    sources.append(_davis_source(stack, backend=backend))
     if cameras > 0:
         d415s = open_cameras(
             "mock", scenario=scenario, seed=seed, count=cameras, pacing="realtime",
             seconds=seconds + 5.0,
         )  # fmt: skip
         for i, d in enumerate(d415s):
+            if faults is not None:
+                d = faults.depth_camera(d)
             stack.append(("d415/" + d.info.serial, d))
             mode, opts = StreamConfig(), SensorOptions()
             d.configure(
@@ -98,17 +138,54 @@ def _mock_sources(
                 options=opts,
                 sync_mode=SyncMode.MASTER if i == 0 else SyncMode.SLAVE,
             )
-            sources.append(DepthCameraSource(d, stream=mode, options=opts))
+            sources.append(
+                DepthCameraSource(d, stream=mode, options=opts, reopen=_d415_finder(d, faults))
+            )
     if syncbox:
         from mocaprig.acquire.syncbox import SyncBox, open_mock_syncbox
 
         mock_box = open_mock_syncbox(seed=seed)
         stack.append(("syncbox-mock", mock_box))
-        box = SyncBox(mock_box.port)
+        port = str(mock_box.port)
+        box = SyncBox(port if faults is None else faults.serial_port(port))
         box.open()
         stack.append(("syncbox", box))
         sources.append(SyncBoxSource(box))
     return sources
+
+
+def _davis_source(
+    stack: list[tuple[str, Any]], *, bias_preset: Any = None, **where: Any
+) -> DavisSource:
+    """Open a DAVIS (``where``: ``backend=`` or ``serial=``) as a source that re-opens it by
+    serial, with the same biases, after it was lost."""
+    from mocaprig.acquire.davis240c import Davis240C
+
+    preset = {} if bias_preset is None else {"bias_preset": bias_preset}
+    cam = Davis240C.open(**where, **preset)
+    stack.append(("davis/" + cam.serial, cam))
+    again = {**where, "serial": cam.serial, **preset}
+    return DavisSource(cam, reopen=lambda: Davis240C.open(**again))
+
+
+def _d415_finder(cam: Any, faults: MockFaults | None) -> Callable[[], Any] | None:
+    """How to find the D415 ``cam`` again after it was lost: the fault proxy's enumeration on
+    the mock rig with faults; None for a mock without them (it is never lost)."""
+    if faults is None:
+        return None
+    serial = str(cam.info.serial)
+    return lambda: faults.find_depth_camera(serial)
+
+
+def _realsense_finder(serial: str) -> Callable[[], Any]:
+    """Find the real D415 ``serial`` again (DeviceNotFoundError while it is not connected)."""
+    from mocaprig.acquire.camera_backends import open_cameras
+
+    def find() -> Any:
+        (cam,) = open_cameras("realsense", serials=[serial])
+        return cam
+
+    return find
 
 
 _MOCK_D415_MAX = 4  # cameras of the simulated rig
@@ -121,6 +198,7 @@ def _rig_sources(
     seed: int,
     seconds: float,
     stack: list[tuple[str, Any]],
+    faults: MockFaults | None = None,
 ) -> list[StreamSource]:
     """Open the devices ``rig`` lists (real ones, or the simulated rig's mocks when
     ``rig.mock``), configured as the file says; opened devices go on ``stack`` (the caller
@@ -142,7 +220,9 @@ def _rig_sources(
                 scenario=scenario, seed=seed, pacing="asap", serial=entry.serial,
                 seconds=seconds + 5.0,
             )  # fmt: skip
-            cam = davis240c.Davis240C.open(backend=backend, bias_preset=entry.bias_preset)
+            if faults is not None:
+                backend = faults.davis_backend(backend)
+            sources.append(_davis_source(stack, backend=backend, bias_preset=entry.bias_preset))
         else:
             found = davis240c.find_davis()
             serials = sorted(d.serial or "?" for d in found)
@@ -152,9 +232,7 @@ def _rig_sources(
                     f"{serials}; run `mocaprig devices`"
                 )
                 raise DeviceNotFoundError(msg)
-            cam = davis240c.Davis240C.open(serial=entry.serial, bias_preset=entry.bias_preset)
-        stack.append(("davis/" + cam.serial, cam))
-        sources.append(DavisSource(cam))
+            sources.append(_davis_source(stack, serial=entry.serial, bias_preset=entry.bias_preset))
     if rig.d415:
         if rig.mock:
             if len(rig.d415) > _MOCK_D415_MAX:
@@ -169,6 +247,8 @@ def _rig_sources(
             )  # fmt: skip
             # The mocks carry the simulated rig's serials: rig-file cameras map onto them in
             # order (the rig-file serial is kept in the device metadata as rig_serial).
+            if faults is not None:
+                found_cams = [faults.depth_camera(c) for c in found_cams]
             pairs = list(zip(rig.d415, found_cams, strict=True))
         else:
             found_cams = camera_backends.open_cameras("realsense")
@@ -194,7 +274,8 @@ def _rig_sources(
             mode = SyncMode.MASTER if e.role == "master" else SyncMode.SLAVE
             d.configure(stream=e.stream, options=e.options, sync_mode=mode)
         for e, d in pairs:
-            src = DepthCameraSource(d, stream=e.stream, options=e.options)
+            finder = _d415_finder(d, faults) if rig.mock else _realsense_finder(e.serial)
+            src = DepthCameraSource(d, stream=e.stream, options=e.options, reopen=finder)
             src.set_rig_entry(e.serial, e.role)
             sources.append(src)
     if rig.syncbox is not None:
@@ -208,6 +289,8 @@ def _rig_sources(
             mock_box = open_mock_syncbox(seed=seed, listen_hz=listen_hz)
             stack.append(("syncbox-mock", mock_box))
             port = str(mock_box.port)
+            if faults is not None:
+                port = faults.serial_port(port)
         else:
             port = sb.port
         box = SyncBox(port)
@@ -233,6 +316,9 @@ class RecordingSummary:
         drops_total: Messages dropped, all streams.
         streams: Final per-stream counters.
         hung_sources: Sources whose thread did not stop (their devices must not be closed).
+        faults: Every fault and recovery, in order (also written on ``/faults``).
+        signal: The signal that stopped the recording (``SIGINT``, ``SIGTERM``), or None.
+        live: What the live view (``--live``) published and dropped of its own, or None.
     """
 
     files: tuple[Path, ...]
@@ -242,6 +328,14 @@ class RecordingSummary:
     drops_total: int
     streams: tuple[StreamStatus, ...]
     hung_sources: tuple[str, ...] = ()
+    faults: tuple[Fault, ...] = ()
+    signal: str | None = None
+    live: LiveStats | None = None
+
+    @property
+    def device_faults(self) -> tuple[Fault, ...]:
+        """The faults that lost a device's data (its streams have a gap)."""
+        return tuple(f for f in self.faults if f.kind in ("disconnected", "source-died"))
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (what ``record --json`` prints)."""
@@ -254,6 +348,12 @@ class RecordingSummary:
             "streams": [
                 {"topic": s.topic, "messages": s.written, "drops": s.dropped} for s in self.streams
             ],
+            "signal": self.signal,
+            "faults": [
+                {"kind": f.kind, "device": f.device, "t_ns": f.t_ns, "detail": f.detail}
+                for f in self.faults
+            ],
+            **({} if self.live is None else {"live": self.live.as_dict()}),
         }
 
 
@@ -271,11 +371,15 @@ def record_to_file(
     min_free_mb: float = 512.0,
     status_line: bool = False,
     handle_signals: bool = False,
+    open_file: Callable[[Path, str], BinaryIO] | None = None,
+    live: LiveView | None = None,
 ) -> RecordingSummary:
     """Record ``sources`` (and ``followers``, see :func:`acquire.recorder.record_sources`) into
     ``out`` for ``seconds`` (``None``: until every source ends, for offline sources).
 
     The sources' ``metadata`` attributes are added to ``metadata``. Devices are not closed here.
+    ``open_file``: see :class:`mocaprig.acquire.recorder.Recorder`. ``live``: a started
+    :class:`~mocaprig.acquire.live_view.LiveView` fed behind the recorder (its ``tap``).
 
     Raises:
         RecordingError: ``out`` exists, cannot be written, or the recording stopped early
@@ -292,7 +396,11 @@ def record_to_file(
         min_free_disk_bytes=int(min_free_mb * 1e6),
         metadata=meta,
         attachments=attachments,
+        open_file=open_file,
+        tap=None if live is None else live.tap,
     )
+    if live is not None:
+        live.follow(recorder)
     status = _StatusLine() if status_line else None
     guard = stop_on_signals(recorder) if handle_signals else contextlib.nullcontext()
     with recorder, guard:
@@ -310,6 +418,9 @@ def record_to_file(
         drops_total=final.dropped_total,
         streams=final.streams,
         hung_sources=hung,
+        faults=recorder.faults,
+        signal=recorder.signal_name,
+        live=None if live is None else live.stats(),
     )
 
 
@@ -328,6 +439,8 @@ def run_recording(
     split_mb: float | None = None,
     min_free_mb: float = 512.0,
     sources: Sequence[StreamSource] | None = None,
+    mock_faults: MockFaults | None = None,
+    live: LiveView | None = None,
 ) -> RecordingSummary:
     """Record the rig (a rig file's devices, the mock rig, or given ``sources``) into ``out``
     for ``seconds``, with the live status line (terminal only) and SIGINT/SIGTERM finishing the
@@ -335,7 +448,10 @@ def run_recording(
 
     With ``rig``, the rig file is stored as the ``rig.toml`` attachment and its metadata as the
     ``rig`` and ``session`` records. The devices opened here are closed at the end, except those
-    whose reader thread is stuck in a device call (logged).
+    whose reader thread is stuck in a device call (logged). A device lost mid-recording is
+    re-opened when it comes back. ``mock_faults`` injects faults into the mock rig (``--mock``
+    or a rig file with ``mock = true``), its clock started with the recording. ``live``: a
+    started live view served while recording (``--live``), see :func:`record_to_file`.
 
     Returns:
         What was recorded; the recording ended as asked.
@@ -349,6 +465,9 @@ def run_recording(
     if seconds <= 0:
         msg = f"--seconds must be > 0, got {seconds}"
         raise ValidationError(msg)
+    if mock_faults is not None and (sources is not None or (rig is None and not mock)):
+        msg = "fault injection (--mock-faults) needs the mock rig: --mock, or a rig file with mock"
+        raise ValidationError(msg)
     stack: list[tuple[str, Any]] = []
     summary: RecordingSummary | None = None
     metadata: dict[str, dict[str, str]] = {}
@@ -357,8 +476,19 @@ def run_recording(
         if sources is None:
             if rig is not None:
                 rig_file = load_rig_file(rig)
+                if mock_faults is not None and not rig_file.mock:
+                    msg = (
+                        f"fault injection (--mock-faults) needs mock = true in {rig}; real "
+                        "devices fail on their own"
+                    )
+                    raise ValidationError(msg)
                 sources = _rig_sources(
-                    rig_file, scenario=scenario, seed=seed, seconds=seconds, stack=stack
+                    rig_file,
+                    scenario=scenario,
+                    seed=seed,
+                    seconds=seconds,
+                    stack=stack,
+                    faults=mock_faults,
                 )
                 metadata["rig"] = rig_file.metadata()
                 metadata["session"] = {
@@ -382,8 +512,11 @@ def run_recording(
                     cameras=cameras,
                     syncbox=syncbox,
                     stack=stack,
+                    faults=mock_faults,
                 )
                 metadata["session"] = {"mock": "true", "scenario": scenario, "seed": str(seed)}
+        if mock_faults is not None:
+            mock_faults.start()
         summary = record_to_file(
             out,
             sources,
@@ -396,6 +529,8 @@ def run_recording(
             min_free_mb=min_free_mb,
             status_line=True,
             handle_signals=True,
+            open_file=None if mock_faults is None else mock_faults.open_file,
+            live=live,
         )
     finally:
         hung = summary.hung_sources if summary is not None else ()

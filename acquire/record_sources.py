@@ -3,12 +3,22 @@
 Each source (:class:`DavisSource`, :class:`DepthCameraSource`, :class:`SyncBoxSource`) is a
 :class:`mocaprig.acquire.recorder.StreamSource`: it declares its topics, then runs in its own
 thread, reading the device and putting messages into the recorder until told to stop.
+
+A device lost mid-recording (unplugged, a cable pulled, silent) is a ``disconnected``
+:class:`~mocaprig.acquire.recorder.Fault` in the file; the source then calls its ``reopen``
+(every ``retry_s``) until the device is back, re-opens it as it was configured, writes a
+``reconnected`` fault and goes on in the same streams. Without ``reopen`` the source ends after
+the fault (the sync box re-opens its own port). The other sources are not affected.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import logging
 import threading
+import time
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy.typing as npt
@@ -28,8 +38,46 @@ from mocaprig.acquire.recording_format import (
     TriggerPacket,
     split_events,
 )
+from mocaprig.errors import DeviceError
 
 __all__ = ["DavisSource", "DepthCameraSource", "SyncBoxSource"]
+
+_log = logging.getLogger(__name__)
+
+
+def _wait_for_device(
+    reopen: Callable[[], Any], stop: threading.Event, retry_s: float, label: str
+) -> Any | None:
+    """``reopen()`` every ``retry_s`` until it gives the device (None once ``stop`` is set).
+    A :class:`DeviceError` means "not back yet"; anything else is a bug and propagates."""
+    last = ""
+    while not stop.is_set():
+        try:
+            return reopen()
+        except DeviceError as err:
+            if str(err) != last:  # one log line per new reason, not one per retry
+                last = str(err)
+                _log.info("%s not back yet: %s", label, err)
+        stop.wait(retry_s)
+    return None
+
+
+def _gap_words(t_lost_ns: int, t_last_data_ns: int | None, now_ns: int) -> str:
+    """How long a device was gone, for the ``reconnected`` fault."""
+    words = f"re-opened {(now_ns - t_lost_ns) / 1e9:.3f} s after it was lost"
+    if t_last_data_ns is not None:
+        words += f", {(now_ns - t_last_data_ns) / 1e9:.3f} s after its last data"
+    return words
+
+
+def _lost_words(err: BaseException | str, t_last_data_ns: int | None, now_ns: int) -> str:
+    """The ``disconnected`` fault's detail: the error and the age of the last data."""
+    last = (
+        "no data before"
+        if t_last_data_ns is None
+        else f"last data {(now_ns - t_last_data_ns) / 1e9:.3f} s before"
+    )
+    return f"{err}; {last}"
 
 
 class DavisSource:
@@ -47,6 +95,11 @@ class DavisSource:
             with :meth:`Recorder.put_wait` (back-pressure instead of drops) and the source ends
             at ``end_t_us`` (device µs) or when the stream ends.
         end_t_us: Offline end: stop after the first packet reaching this device time (µs).
+        reopen: Opens the same camera again (by serial, same settings) after it was lost;
+            raises :class:`DeviceError` while it is not back. ``None``: the source ends at a
+            device fault. A re-opened camera is started here and closed at the end of ``run``;
+            its device time restarts at 0 (a timestamp reset).
+        retry_s: Period of the ``reopen`` attempts (s).
     """
 
     def __init__(
@@ -58,8 +111,12 @@ class DavisSource:
         dvs: bool = True,
         offline: bool = False,
         end_t_us: int | None = None,
+        reopen: Callable[[], Any] | None = None,
+        retry_s: float = 0.2,
     ) -> None:
         self.cam = cam
+        self.reopen = reopen
+        self.retry_s = retry_s
         self.manage_streaming = manage_streaming
         self.dvs = dvs
         self.offline = offline
@@ -77,6 +134,8 @@ class DavisSource:
             self.device.settings_name: {**_davis_settings(cam), "dvs.run": str(dvs).lower()},
         }
         self._h: dict[str, Any] = {}
+        self._first = cam
+        self._last_ns: int | None = None  # host time of the last packet (ns)
 
     def declare(self, recorder: Recorder) -> None:
         meta = {"serial": self.serial, "device": "DAVIS240C", "frame_id": self.frame_id}
@@ -92,15 +151,46 @@ class DavisSource:
             )
 
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
+        seq = {"events": 0, "frame": 0, "imu": 0, "trigger": 0}  # go on across a re-open
         cam = self.cam
-        if self.manage_streaming:
+        manage = self.manage_streaming
+        while True:
+            try:
+                self._stream(cam, recorder, stop, seq, manage=manage)
+                return
+            except DeviceError as err:
+                t_lost = recorder.clock_ns()
+                recorder.fault(
+                    "disconnected", self.name, _lost_words(err, self._last_ns, t_lost), t_ns=t_lost
+                )
+                with contextlib.suppress(Exception):  # the handle is dead; free what is left
+                    cam.close()
+                if self.reopen is None:
+                    return
+                cam = _wait_for_device(self.reopen, stop, self.retry_s, self.name)
+                if cam is None:
+                    return
+                self.cam, manage = cam, True  # a camera opened here is started and closed here
+                now = recorder.clock_ns()
+                recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+
+    def _stream(
+        self,
+        cam: Any,
+        recorder: Recorder,
+        stop: threading.Event,
+        seq: dict[str, int],
+        *,
+        manage: bool,
+    ) -> None:
+        """Read ``cam`` until ``stop`` (or the offline end); a device error propagates."""
+        if manage:
             cam.start()
             if not self.dvs:
                 from mocaprig.acquire.davis240c_config import DvsParam, Module
 
                 cam.config_set(Module.DVS, DvsParam.RUN, 0)
         put = recorder.put_wait if self.offline else recorder.put
-        seq = {"events": 0, "frame": 0, "imu": 0, "trigger": 0}
         h = self._h
         try:
             while not stop.is_set():
@@ -110,6 +200,7 @@ class DavisSource:
                         break  # the simulated device ended (or failed: stats are logged)
                     continue
                 t = pkt.host_time_ns or None
+                self._last_ns = recorder.clock_ns()
                 if pkt.events.size:
                     for ev in _chunks(pkt.events, self._max):
                         for part in split_events(ev):
@@ -147,7 +238,7 @@ class DavisSource:
                 if self.end_t_us is not None and _packet_end_us(pkt) >= self.end_t_us:
                     break
         finally:
-            if self.manage_streaming:
+            if manage:
                 cam.stop()
             stats = cam.stats()
             recorder.log(
@@ -157,6 +248,8 @@ class DavisSource:
                 f"{stats.raw_bytes_dropped}",
                 name=self.name,
             )
+        if cam is not self._first:
+            cam.close()  # a camera re-opened here is closed here; the first one is the caller's
 
 
 def _davis_settings(cam: Any) -> dict[str, str]:
@@ -202,6 +295,9 @@ class DepthCameraSource:
         options: Any = None,
         manage_streaming: bool = True,
         offline: bool = False,
+        reopen: Callable[[], Any] | None = None,
+        retry_s: float = 0.2,
+        stall_s: float | None = None,
     ) -> None:
         """``stream``/``options``: the StreamConfig and SensorOptions the camera was configured
         with, stored in its metadata record (mode, exposure, gain, laser power).
@@ -210,8 +306,20 @@ class DepthCameraSource:
         caller does (e.g. to start every camera of a simulated rig at the same instant).
         ``offline``: a simulated camera paced as fast as possible: messages go in with
         :meth:`Recorder.put_wait` (back-pressure, no drops) and ``poll() -> None`` means the
-        simulated session is over (the source ends)."""
+        simulated session is over (the source ends).
+
+        A live camera that delivers nothing for ``stall_s`` (default: 1 s, at least 5 frame
+        periods) is lost: librealsense's frame queue goes silent when a camera is unplugged, it
+        raises nothing. ``reopen`` finds the same camera again (raising :class:`DeviceError`
+        while it is not connected); it is configured as before (mode, options, sync mode),
+        started, and closed at the end of ``run``. Without ``reopen`` the silence is recorded
+        and polling goes on (frames that come back are recorded, with a ``reconnected``
+        fault)."""
         self.cam = cam
+        self.reopen = reopen
+        self.retry_s = retry_s
+        fps = float(getattr(stream, "fps", 0) or 30)
+        self.stall_s = stall_s if stall_s is not None else max(1.0, 5.0 / fps)
         self.manage_streaming = manage_streaming
         self.offline = offline
         cinfo = cam.info
@@ -230,6 +338,7 @@ class DepthCameraSource:
             options=options,
         )
         self._h: dict[str, Any] = {}
+        self._last_ns: int | None = None  # host time of the last frame (ns)
 
     @property
     def metadata(self) -> dict[str, dict[str, str]]:
@@ -254,12 +363,65 @@ class DepthCameraSource:
             )
 
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
-        cam, h = self.cam, self._h
-        if self.manage_streaming:
-            cam.start()
+        cam, manage, first = self.cam, self.manage_streaming, self.cam
+        while True:
+            try:
+                lost = self._stream(cam, recorder, stop, manage=manage)
+            except BaseException:
+                if cam is not first:
+                    cam.close()
+                raise
+            if lost is None:
+                if cam is not first:
+                    cam.close()  # a camera re-opened here is closed here
+                return
+            t_lost = recorder.clock_ns()
+            recorder.fault(
+                "disconnected", self.name, _lost_words(lost, self._last_ns, t_lost), t_ns=t_lost
+            )
+            with contextlib.suppress(Exception):  # the camera is gone: free what is left
+                cam.close()
+            if self.reopen is None:
+                return
+            found = _wait_for_device(self.reopen, stop, self.retry_s, self.name)
+            if found is None:
+                return
+            try:
+                found.configure(
+                    stream=self.settings.stream,
+                    options=self.settings.options,
+                    sync_mode=self.settings.sync_mode,
+                )
+            except DeviceError as err:
+                with contextlib.suppress(Exception):
+                    found.close()
+                recorder.fault("disconnected", self.name, f"re-opened but cannot configure: {err}")
+                return
+            self.cam, cam, manage = found, found, True
+            now = recorder.clock_ns()
+            recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+
+    def _stream(
+        self,
+        cam: Any,
+        recorder: Recorder,
+        stop: threading.Event,
+        *,
+        manage: bool,
+    ) -> BaseException | str | None:
+        """Record ``cam`` until ``stop`` (or the offline end): None; or until it is lost (an
+        error, or silence when there is a ``reopen``): the error or what the silence was.
+        Without ``reopen`` a silence is recorded as a fault and polling goes on."""
+        h = self._h
         put = recorder.put_wait if self.offline else recorder.put
         try:
+            if manage:
+                cam.start()
             k = cam.intrinsics()
+        except DeviceError as err:
+            return err
+        silent_since: int | None = None  # host ns of a recorded silence (without reopen)
+        try:
             calib = CameraCalibrationMsg(
                 int(k.width),
                 int(k.height),
@@ -269,12 +431,31 @@ class DepthCameraSource:
                 self.frame_id,
             )
             put(h["camera_info"], calib)
+            since = time.monotonic()  # the last frame, or the start
             while not stop.is_set():
-                fs = cam.poll(0.1)
+                try:
+                    fs = cam.poll(0.1)
+                except DeviceError as err:
+                    return err
                 if fs is None:
                     if self.offline:
                         break  # the simulated session is over: no frame will come
+                    silent = time.monotonic() - since
+                    if silent >= self.stall_s:
+                        why = f"no frames for {silent:.2f} s (unplugged or stalled)"
+                        if self.reopen is not None:
+                            return why
+                        if silent_since is None:
+                            silent_since = recorder.clock_ns()
+                            detail = _lost_words(why, self._last_ns, silent_since)
+                            recorder.fault("disconnected", self.name, detail, t_ns=silent_since)
                     continue
+                since = time.monotonic()
+                if silent_since is not None:
+                    now = recorder.clock_ns()
+                    detail = "frames again, " + _gap_words(silent_since, self._last_ns, now)
+                    recorder.fault("reconnected", self.name, detail)
+                    silent_since = None
                 tm = fs.timing
                 n = int(tm.frame_counter)
                 stamp = (
@@ -285,6 +466,7 @@ class DepthCameraSource:
                 # log_time: the recorder's host clock at receive (the camera's host_time_ns is
                 # monotonic, or simulated in a mock; it is kept in frame_info).
                 t = recorder.clock_ns()
+                self._last_ns = t
                 ir = ImageMsg(fs.infrared.image, "mono8", stamp, self.frame_id)
                 depth = ImageMsg(fs.depth.image, "16UC1", stamp, self.frame_id)
                 put(h["ir"], ir, log_time_ns=t, sequence=n)
@@ -302,8 +484,10 @@ class DepthCameraSource:
                 )
                 put(h["frame_info"], info, log_time_ns=t, sequence=n)
         finally:
-            if self.manage_streaming:
-                cam.stop()
+            if manage:
+                with contextlib.suppress(DeviceError):  # a lost camera may refuse to stop
+                    cam.stop()
+        return None
 
 
 class SyncBoxSource:
@@ -311,6 +495,11 @@ class SyncBoxSource:
 
     Topic ``/syncbox/pulses``: one message per ``PULSES`` report. ``mode`` ``listen`` counts
     the D415 master's pulses; ``generate`` drives the trigger at ``hz``.
+
+    A port that fails beyond the driver's own re-open (cable pulled for longer than its
+    backoff) or a run the box lost (a board that reset) is a ``disconnected`` fault; the source
+    then re-opens the port every ``retry_s`` (when ``reopen`` is True), stops whatever run the
+    box still has and starts its run again (a ``reconnected`` fault). Pulse counts restart.
     """
 
     def __init__(
@@ -321,8 +510,13 @@ class SyncBoxSource:
         hz: int = 30,
         width_us: int = 100,
         report_interval_ms: int = 200,
+        reopen: bool = True,
+        retry_s: float = 0.2,
     ) -> None:
         self.box = box
+        self.reopen = reopen
+        self.retry_s = retry_s
+        self._last_ns: int | None = None
         self.name = "syncbox"
         self.mode = mode
         self.hz = hz
@@ -349,21 +543,53 @@ class SyncBoxSource:
 
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
         box = self.box
+        n = 0  # the stream's sequence goes on across a re-open
+        while True:
+            try:
+                n = self._listen(box, recorder, stop, n)
+                return
+            except DeviceError as err:
+                t_lost = recorder.clock_ns()
+                recorder.fault(
+                    "disconnected", self.name, _lost_words(err, self._last_ns, t_lost), t_ns=t_lost
+                )
+                box.close()  # best effort; the port is closed whatever the box said
+                if not self.reopen:
+                    return
+                if _wait_for_device(lambda: self._reopen(box), stop, self.retry_s, self.name):
+                    now = recorder.clock_ns()
+                    recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+                    continue
+                return
+
+    def _reopen(self, box: Any) -> bool:
+        """Open the port again and leave the box idle (a board that kept power keeps its run)."""
+        from mocaprig.acquire.syncbox import SyncBoxError
+
+        box.open()
+        try:
+            box.stop()
+        except SyncBoxError:
+            pass  # nothing was running
+        except DeviceError:
+            box.close()
+            raise
+        return True
+
+    def _listen(self, box: Any, recorder: Recorder, stop: threading.Event, n: int) -> int:
+        """Start the run and record its reports until ``stop``; returns the next sequence."""
         box.set_report_interval(self.report_interval_ms)
         if self.mode == "generate":
             box.start(hz=self.hz, width_us=self.width_us)
         else:
             box.listen()
         mode = self.mode.upper() if self.mode == "listen" else "GENERATE"
-        n = 0
-        try:
-            while not stop.is_set():
-                for rep in box.read_reports(0.1):
-                    msg = SyncPulses(
-                        rep.count, rep.t_us, mode, "syncbox", rep.total, rep.host_time_ns
-                    )
-                    recorder.put(self._h, msg, sequence=n)
-                    n += 1
-        finally:
-            count = box.stop()
-            recorder.log("INFO", f"sync box run ended with {count} pulses", name=self.name)
+        while not stop.is_set():
+            for rep in box.read_reports(0.1):
+                msg = SyncPulses(rep.count, rep.t_us, mode, "syncbox", rep.total, rep.host_time_ns)
+                recorder.put(self._h, msg, sequence=n)
+                self._last_ns = recorder.clock_ns()
+                n += 1
+        count = box.stop()
+        recorder.log("INFO", f"sync box run ended with {count} pulses", name=self.name)
+        return n

@@ -21,7 +21,13 @@ Design (``docs/recording-format.md`` §Recorder):
   source died, a disk stop, a split) go to ``/log`` (``foxglove.Log``); the final counts go into
   the ``mocaprig.summary`` metadata record written just before the file is finished.
 * Free disk is watched; below ``min_free_disk_bytes`` the recorder stops, finishes the file and
-  :meth:`Recorder.__exit__` raises :class:`~mocaprig.errors.RecordingError` saying so.
+  :meth:`Recorder.__exit__` raises :class:`~mocaprig.errors.RecordingError` saying so. A write
+  that fails with ``ENOSPC`` anyway (the probe lied, another program filled the disk) cuts the
+  file back to its last flushed record and ends it there without an index (:meth:`_Part.salvage`):
+  readable as it is, ``mocaprig recover`` rebuilds the index.
+* Faults (a device lost and back, a full disk, a signal) are :class:`Fault` records on ``/faults``
+  (``foxglove.Log``, declared at the first fault), each with its host time; see
+  ``docs/recording-format.md`` §Faults.
 * Optional splitting by size or duration into numbered files ``<stem>_000.mcap``, ... Each
   part is self-contained (schemas, channels, metadata and attachments repeated).
 
@@ -29,7 +35,8 @@ Memory bound: ``sum(queue_bytes of every stream) + ~3 × (chunk_size_bytes + lar
 (open chunk, its compressed copy, the message being encoded) plus the writer's chunk index,
 about 100 B + 10 B per channel per chunk for the life of one file (split files to bound it).
 
-Library code never installs signal handlers; the CLI uses :func:`stop_on_signals`.
+Library code never installs signal handlers; the CLI uses :func:`stop_on_signals`, whose handler
+only notes the signal (no lock is taken in a handler); the writer thread records it and stops.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import enum
+import errno
 import logging
 import os
 import shutil
@@ -47,8 +55,10 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, TracebackType
-from typing import Any, BinaryIO, Final, Literal, Protocol, Self
+from typing import Any, BinaryIO, Final, Literal, Protocol, Self, cast
 
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from mocaprig import __version__
@@ -66,13 +76,17 @@ from mocaprig.errors import RecordingError, ValidationError
 
 __all__ = [
     "DIAGNOSTICS_TOPIC",
+    "FAULTS_TOPIC",
     "LOG_TOPIC",
     "Attachment",
     "Compression",
+    "Fault",
+    "FaultKind",
     "Recorder",
     "StopReason",
     "StreamHandle",
     "StreamSource",
+    "Tap",
     "record_sources",
     "split_path",
     "stop_on_signals",
@@ -82,8 +96,13 @@ _log = logging.getLogger(__name__)
 
 DIAGNOSTICS_TOPIC: Final = "/diagnostics"
 LOG_TOPIC: Final = "/log"
+FAULTS_TOPIC: Final = "/faults"
+_MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
 
 Compression = Literal["zstd", "lz4", "none"]
+#: The live hook, ``(topic, payload, encoded bytes, log_time_ns)``: called by the writer thread
+#: after each message it has written; it must return at once (``acquire/live_view.py``).
+Tap = Callable[[str, RecordedPayload, bytes, int], None]
 _COMPRESSION: Final = {
     "zstd": CompressionType.ZSTD,
     "lz4": CompressionType.LZ4,
@@ -97,6 +116,59 @@ class StopReason(enum.Enum):
     REQUESTED = "requested"  # stop() or leaving the with-block
     DISK_FULL = "disk-full"  # free disk fell below the margin
     WRITE_ERROR = "write-error"  # the file could not be written
+    SIGNAL = "signal"  # SIGINT / SIGTERM through stop_on_signals()
+
+
+FaultKind = Literal[
+    "disconnected", "reconnected", "source-died", "disk-full", "write-error", "signal"
+]
+_FAULT_KINDS: Final[frozenset[str]] = frozenset(
+    ("disconnected", "reconnected", "source-died", "disk-full", "write-error", "signal")
+)
+#: Log level of each fault kind on ``/faults`` (a device back is good news: INFO).
+_FAULT_LEVEL: Final[dict[str, LogLevel]] = {
+    "disconnected": "ERROR",
+    "reconnected": "INFO",
+    "source-died": "ERROR",
+    "disk-full": "FATAL",
+    "write-error": "FATAL",
+    "signal": "WARNING",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """One fault (or recovery) during a recording, as written on ``/faults``.
+
+    Attributes:
+        kind: What happened: a device ``disconnected`` (an error or silence), ``reconnected``
+            (re-opened, recording again), its source ``source-died`` (an error no re-open can
+            fix), the disk is full (``disk-full``), the file could not be written
+            (``write-error``), a ``signal`` stopped the recording.
+        device: The device label (``davis/<serial>``, ``d415/<serial>``, ``syncbox``) or
+            ``recorder``.
+        t_ns: Host time it happened (the recorder's clock, ns); also the message's log_time.
+        detail: One line for a person: the error, how long the device was gone...
+    """
+
+    kind: FaultKind
+    device: str
+    t_ns: int
+    detail: str
+
+    def to_log(self) -> LogMsg:
+        """The ``foxglove.Log`` message: ``name`` = device, ``message`` = ``"<kind>: <detail>"``."""
+        return LogMsg(
+            _FAULT_LEVEL[self.kind], f"{self.kind}: {self.detail}", self.device, self.t_ns
+        )
+
+    @classmethod
+    def from_log(cls, msg: LogMsg) -> Fault | None:
+        """The fault a ``/faults`` message holds, or None when it is not one (another writer)."""
+        kind, sep, detail = msg.message.partition(": ")
+        if not sep or kind not in _FAULT_KINDS:
+            return None
+        return cls(cast(FaultKind, kind), msg.name, msg.timestamp_ns, detail)
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,6 +247,12 @@ class Recorder:
         attachments: Files (rig description, calibration) written at the start of every part.
         clock_ns: Host clock for default ``log_time`` (ns); ``time.time_ns`` by default.
         disk_free_bytes: Free-space probe ``(directory) -> bytes`` (tests inject a fake).
+        open_file: Opens an output file ``(path, mode) -> binary file`` with mode ``"xb"``
+            (a new part) or ``"r+b"`` (cutting a part back after ``ENOSPC``); the fault
+            injection of the mocks wraps it. Default: :meth:`pathlib.Path.open`.
+        tap: Called by the writer thread with each message once it is written (the live view,
+            :class:`mocaprig.acquire.live_view.LiveView`); it must not block. An exception from
+            it is logged and the tap is dropped: it never costs the recording a message.
     """
 
     def __init__(
@@ -195,6 +273,8 @@ class Recorder:
         attachments: Sequence[Attachment] = (),
         clock_ns: Callable[[], int] = time.time_ns,
         disk_free_bytes: Callable[[Path], int] | None = None,
+        open_file: Callable[[Path, str], BinaryIO] | None = None,
+        tap: Tap | None = None,
     ) -> None:
         if compression not in _COMPRESSION:
             msg = f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}"
@@ -235,7 +315,11 @@ class Recorder:
         self._attachments = list(attachments)
         self._clock_ns = clock_ns
         self._disk_free = disk_free_bytes or (lambda p: shutil.disk_usage(p).free)
+        self._open_file: Callable[[Path, str], BinaryIO] = open_file or (
+            lambda p, mode: cast(BinaryIO, p.open(mode))
+        )
 
+        self._tap = tap
         self._lock = threading.Lock()
         self._room = threading.Condition(self._lock)  # put_wait() waits here for queue room
         self._waiting = 0
@@ -254,6 +338,11 @@ class Recorder:
         self._file_bytes = 0
         self._peak_queued_bytes = 0
         self._finished = False
+        self._faults: list[Fault] = []
+        self._faults_stream: StreamHandle | None = None
+        self._fault_lock = threading.Lock()
+        self._signal: tuple[int, int] | None = None  # (signum, host ns), set by a handler
+        self._salvaged: bool | None = None  # after ENOSPC: whether the file's ending fitted
         self._diag = self.add_stream(DIAGNOSTICS_TOPIC, RecorderStatus, queue_messages=64)
         self._logs = self.add_stream(LOG_TOPIC, LogMsg, queue_messages=1024)
 
@@ -320,6 +409,19 @@ class Recorder:
         Raises:
             RecordingError: naming the file, the cause and what to do.
         """
+        if self._stop_reason is StopReason.DISK_FULL and self._salvaged is not None:
+            state = (
+                "the file ends at its last complete record, without an index: readable as it "
+                "is; `mocaprig recover` on another disk rebuilds the index"
+                if self._salvaged
+                else "there was no room for its ending: the file stops at its last complete "
+                "record; read it as it is or run `mocaprig recover` on another disk"
+            )
+            msg = (
+                f"recording {self.current_path} stopped early: the disk is full (a write failed "
+                f"with ENOSPC: {self._error}); {state}; free space before recording again"
+            )
+            raise RecordingError(msg) from self._error
         if self._stop_reason is StopReason.DISK_FULL:
             msg = (
                 f"recording {self.current_path} stopped early: free disk fell to "
@@ -450,11 +552,63 @@ class Recorder:
         now = self._clock_ns()
         self.put(self._logs, LogMsg(level, message, name, now), log_time_ns=now)
 
+    def fault(self, kind: FaultKind, device: str, detail: str, *, t_ns: int | None = None) -> Fault:
+        """Record a fault (or a recovery) on ``/faults`` and in the Python log; never blocks.
+
+        Args:
+            kind: See :class:`Fault`.
+            device: The device label, or ``recorder``.
+            detail: One line for a person.
+            t_ns: When it happened (host ns; default: now).
+        """
+        f = self._note_fault(kind, device, detail, t_ns=t_ns)
+        self.put(self._faults_handle(), f.to_log(), log_time_ns=f.t_ns)
+        return f
+
+    def _note_fault(
+        self, kind: FaultKind, device: str, detail: str, *, t_ns: int | None = None
+    ) -> Fault:
+        """Keep a fault for :attr:`faults` and the Python log (not yet for the file)."""
+        f = Fault(kind, device, self._clock_ns() if t_ns is None else t_ns, detail)
+        with self._lock:
+            self._faults.append(f)
+        level = f.to_log().level
+        _log.log(getattr(logging, "CRITICAL" if level == "FATAL" else level), "%s: %s: %s",
+                 device, kind, detail)  # fmt: skip
+        return f
+
+    def _faults_handle(self) -> StreamHandle:
+        """The ``/faults`` stream, declared at the first fault (a file without faults has none)."""
+        with self._fault_lock:
+            if self._faults_stream is None:
+                self._faults_stream = self.add_stream(FAULTS_TOPIC, LogMsg, queue_messages=1024)
+            return self._faults_stream
+
+    @property
+    def faults(self) -> tuple[Fault, ...]:
+        """Every fault recorded so far (also those a full disk kept out of the file)."""
+        with self._lock:
+            return tuple(self._faults)
+
+    def stop_for_signal(self, signum: int) -> None:
+        """Stop because of signal ``signum``; safe in a signal handler (takes no lock: the
+        writer thread records a ``signal`` fault and stops within ~0.1 s)."""
+        if self._signal is None:
+            self._signal = (signum, self._clock_ns())
+
     # ---------------------------------------------------------------------------- state
 
     def clock_ns(self) -> int:
         """The recorder's host clock now (ns): the clock of default ``log_time`` values."""
         return self._clock_ns()
+
+    @property
+    def signal_name(self) -> str | None:
+        """The signal that stopped the recording (``"SIGTERM"``...), or None."""
+        if self._signal is None or self._stop_reason is not StopReason.SIGNAL:
+            return None
+        signum = self._signal[0]
+        return signal.Signals(signum).name if signum in signal.valid_signals() else str(signum)
 
     @property
     def stopped(self) -> threading.Event:
@@ -529,7 +683,7 @@ class Recorder:
     def _open_part(self, index: int) -> _Part:
         path = split_path(self.path, index) if self._split else self.path
         try:
-            f = path.open("xb")
+            f = self._open_file(path, "xb")
         except FileExistsError as err:
             msg = f"{path} exists already; not overwriting a recording (choose another --out)"
             raise RecordingError(msg) from err
@@ -546,6 +700,7 @@ class Recorder:
         last_disk = 0.0
         try:
             while True:
+                self._take_signal()
                 stopping = self._stop.is_set()
                 self._wake.wait(timeout=min(self.max_chunk_age_s, 0.1))
                 self._wake.clear()
@@ -567,7 +722,14 @@ class Recorder:
                     part = self._next_part(part)
             part.finish(self._summary_metadata(part))
         except BaseException as err:  # a writer failure must never pass silently
+            if _is_disk_full(err):
+                self._disk_full(part, err)
+                return
             _log.exception("recorder writer failed on %s", part.path)
+            f = self.fault("write-error", "recorder", f"{err!r} while writing {part.path}")
+            with contextlib.suppress(Exception):  # into the file if it still takes it
+                fs = self._streams[self._faults_handle().index]
+                part.write(fs, f.t_ns, fs.written, f.to_log().encode())
             with self._lock:
                 self._error = err
                 if self._stop_reason in (None, StopReason.REQUESTED):
@@ -577,6 +739,52 @@ class Recorder:
                 part.finish(self._summary_metadata(part))
             with contextlib.suppress(Exception):
                 part.file.close()
+
+    def _take_signal(self) -> None:
+        """Record a signal noted by :meth:`stop_for_signal` (here, not in the handler) and stop."""
+        sig = self._signal
+        if sig is None:
+            return
+        with self._lock:
+            if self._stop_reason is not None:
+                return
+            self._stop_reason = StopReason.SIGNAL
+        name = self.signal_name
+        self.fault("signal", "recorder", f"{name}: stopping and finishing the file", t_ns=sig[1])
+        self.stop()
+
+    def _disk_full(self, part: _Part, err: BaseException) -> None:
+        """A write failed with ENOSPC: cut the part back to its last flushed record and end it
+        there with the fault and the summary (when they fit)."""
+        f = self._note_fault(
+            "disk-full",
+            "recorder",
+            f"no space left on the disk of {part.path} ({err}); the file ends here",
+        )
+        fs = self._streams[self._faults_handle().index]
+        data = f.to_log().encode()
+        with self._lock:
+            self._error = err
+            self._stop_reason = StopReason.DISK_FULL
+            self._stop.set()
+            # Whatever is still queued cannot be written any more: count it dropped.
+            for s in self._streams:
+                s.dropped += len(s.queue)
+                s.queue.clear()
+                s.queued_bytes = 0
+            fs.received += 1  # the fault goes into the file's ending, if that fits
+            fs.written += 1
+            fs.bytes_written += len(data)
+            self._room.notify_all()
+        if part.finished:  # the next part could not be made: this one is complete
+            self._salvaged = True
+            return
+        self._salvaged = part.salvage([(fs, f.t_ns, data)], self._summary_metadata(part))
+        _log.error(
+            "%s: disk full; %s", part.path,
+            "file ended at its last complete record" if self._salvaged
+            else "no room for the ending: the file stops at its last complete record",
+        )  # fmt: skip
 
     def _probe(self, part: _Part) -> None:
         self._free_bytes = self._probe_disk()
@@ -636,7 +844,11 @@ class Recorder:
                     if self._waiting:
                         self._room.notify_all()
                 disk_full = self._stop_reason is StopReason.DISK_FULL
-                if disk_full and s.handle.index != self._logs.index:
+                fs = self._faults_stream
+                keep = s.handle.index == self._logs.index or (
+                    fs is not None and s.handle.index == fs.index
+                )
+                if disk_full and not keep:
                     with self._lock:  # no room left: drop what is still queued
                         s.queued_bytes -= n
                         s.dropped += 1
@@ -659,7 +871,21 @@ class Recorder:
                     s.queued_bytes -= n
                     s.written += 1
                     s.bytes_written += len(data)
+                if self._tap is not None:
+                    self._call_tap(s.handle.topic, message, data, log_time)
         self._file_bytes = part.tell()
+
+    def _call_tap(self, topic: str, message: RecordedPayload, data: bytes, log_time: int) -> None:
+        """Hand a written message to the tap; a failing tap is dropped, the recording goes on."""
+        tap = self._tap
+        if tap is None:
+            return
+        try:
+            tap(topic, message, data, log_time)
+        except Exception as err:
+            self._tap = None
+            _log.exception("the live tap failed on %s; recording goes on without it", topic)
+            self.log("WARNING", f"live view stopped: {err!r} on {topic}; recording goes on")
 
     def _should_split(self, part: _Part, now: float) -> bool:
         if self.split_bytes is not None and part.tell() >= self.split_bytes:
@@ -687,9 +913,19 @@ class Recorder:
                 out[f"received:{t}"] = str(s.received)
                 out[f"written:{t}"] = str(s.written)
                 out[f"dropped:{t}"] = str(s.dropped)
+            out["faults"] = str(len(self._faults))
         if self._error is not None:
             out["error"] = str(self._error)
         return out
+
+
+def _is_disk_full(err: BaseException | None) -> bool:
+    """``ENOSPC`` (or ``EDQUOT``, a quota: the same for the recording), also as a cause."""
+    while err is not None:
+        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        err = err.__cause__
+    return False
 
 
 class _Part:
@@ -710,6 +946,8 @@ class _Part:
         self._channels: dict[int, int] = {}
         self._chunk_since: float | None = None
         self._final_size = 0
+        self.durable = 0  # file offset up to which every record reached the OS (a boundary)
+        self.finished = False
 
     def begin(
         self, metadata: Mapping[str, Mapping[str, str]], attachments: Sequence[Attachment]
@@ -737,6 +975,7 @@ class _Part:
                 create_time=now, log_time=now, name=a.name, media_type=a.media_type, data=a.data
             )
         self.file.flush()
+        self.durable = self.file.tell()
 
     def channel(self, s: _Stream) -> int:
         """The channel id of ``s`` in this part (registered on first use)."""
@@ -760,6 +999,11 @@ class _Part:
         self.writer.add_message(
             channel_id=cid, log_time=log_time, publish_time=log_time, data=data, sequence=seq
         )
+        pos = self.file.tell()
+        if pos != self.durable:
+            # The message closed a chunk (by size): push it to the OS, a boundary to cut back to.
+            self.file.flush()
+            self.durable = pos
         if self._chunk_since is None:
             self._chunk_since = time.monotonic()
 
@@ -770,10 +1014,64 @@ class _Part:
         self.writer.flush()  # type: ignore[no-untyped-call]
         if self.rec.fsync:
             os.fsync(self.file.fileno())
+        self.durable = self.file.tell()
         self._chunk_since = None
 
     def tell(self) -> int:
         return self._final_size if self.file.closed else self.file.tell()
+
+    def salvage(
+        self, messages: Sequence[tuple[_Stream, int, bytes]], summary: Mapping[str, str]
+    ) -> bool:
+        """After a failed write (ENOSPC): cut the file back to :attr:`durable` (the last record
+        the OS took whole), then end it with ``messages``, the summary record, DataEnd and a
+        Footer without a summary section: a complete MCAP file without an index. Returns
+        False when that ending does not fit either (the file then ends at :attr:`durable`).
+        """
+        with contextlib.suppress(OSError):
+            self.file.close()  # its buffer cannot be written; the raw file closes anyway
+        tail = RecordBuilder()
+        for s, log_time, data in messages:
+            sch = s.handle.schema
+            cid = self._channels.get(s.handle.index)
+            sid = self._schemas.get(sch.name)
+            # Ids the writer would not have used: a channel declared only in the lost chunk
+            # is declared again here (identical records may repeat in MCAP).
+            sid = sid if sid is not None else max(self._schemas.values(), default=0) + 1
+            cid = cid if cid is not None else max(self._channels.values(), default=-1) + 1
+            Schema(id=sid, name=sch.name, encoding=sch.encoding, data=sch.data).write(tail)
+            Channel(
+                id=cid,
+                topic=s.handle.topic,
+                message_encoding="protobuf",
+                metadata=dict(s.metadata),
+                schema_id=sid,
+            ).write(tail)
+            Message(
+                channel_id=cid, log_time=log_time, data=data, publish_time=log_time, sequence=0
+            ).write(tail)
+        Metadata(name="mocaprig.summary", metadata=dict(summary)).write(tail)
+        DataEnd(data_section_crc=0).write(tail)
+        Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(tail)
+        ending = bytes(tail.end()) + _MCAP_MAGIC  # type: ignore[no-untyped-call]
+        try:
+            with self.rec._open_file(self.path, "r+b") as f:
+                f.truncate(self.durable)
+                f.seek(self.durable)
+                try:
+                    f.write(ending)
+                    f.flush()
+                except OSError:
+                    f.truncate(self.durable)
+                    return False
+                finally:
+                    self._final_size = f.seek(0, os.SEEK_END)
+                if self.rec.fsync:
+                    os.fsync(f.fileno())
+        except OSError as err:
+            _log.error("%s: cannot cut the file back after a full disk: %s", self.path, err)
+            return False
+        return True
 
     def finish(self, summary: Mapping[str, str]) -> None:
         self.writer.flush()  # type: ignore[no-untyped-call]
@@ -784,6 +1082,7 @@ class _Part:
         if self.rec.fsync:
             os.fsync(self.file.fileno())
         self.file.close()
+        self.finished = True
 
 
 # -------------------------------------------------------------------------------------------
@@ -839,6 +1138,7 @@ def record_sources(
             src.run(recorder, stop)
         except Exception as err:
             recorder.log("ERROR", f"source {src.name} died: {err!r}", name=src.name)
+            recorder.fault("source-died", src.name, f"{err!r}; its streams end here")
         else:
             if not stop.is_set():
                 recorder.log("INFO", f"source {src.name} ended", name=src.name)
@@ -877,13 +1177,14 @@ def record_sources(
 def stop_on_signals(
     recorder: Recorder, signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)
 ) -> Iterator[None]:
-    """For CLIs only (main thread): SIGINT/SIGTERM stop ``recorder`` cleanly; handlers restored
-    on exit. The library itself never installs handlers."""
+    """For CLIs only (main thread): SIGINT/SIGTERM stop ``recorder`` cleanly (a ``signal``
+    fault in the file, stop reason ``signal``); handlers restored on exit. The library itself
+    never installs handlers."""
     previous: dict[int, Any] = {}
 
     def handler(signum: int, frame: FrameType | None) -> None:
-        _log.warning("signal %s: stopping the recording and finishing the file", signum)
-        recorder.stop()
+        # Nothing that takes a lock here (logging, Event.set): the main thread may hold it.
+        recorder.stop_for_signal(signum)
 
     for sig in signals:
         previous[sig] = signal.signal(sig, handler)

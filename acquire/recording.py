@@ -39,6 +39,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from mocaprig.acquire.events import EVENT_DTYPE
+from mocaprig.acquire.recorder import FAULTS_TOPIC, Fault
 from mocaprig.acquire.recording_format import (
     FORMAT_VERSION,
     IMU_DTYPE,
@@ -46,6 +47,7 @@ from mocaprig.acquire.recording_format import (
     EventPacket,
     ImageMsg,
     ImuPacket,
+    LogMsg,
     RecorderStatus,
     TriggerPacket,
     decode_payload,
@@ -55,6 +57,7 @@ from mocaprig.errors import RecordingError
 __all__ = [
     "UNIX_EPOCH_MIN_NS",
     "ChannelInfo",
+    "DeviceGap",
     "RecordedAttachment",
     "RecordedMessage",
     "Recording",
@@ -593,7 +596,44 @@ class TimeBase:
     end_ns: int
 
 
-_RECORDER_TOPICS: Final = frozenset({"/diagnostics", "/log"})
+_RECORDER_TOPICS: Final = frozenset({"/diagnostics", "/log", FAULTS_TOPIC})
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceGap:
+    """A span without data from one device: from its ``disconnected`` fault to its
+    ``reconnected`` fault, or to the end of the recording when it never came back.
+
+    Attributes:
+        device: The device label (``davis/<serial>``...).
+        start_ns: Host time the device was found lost (ns).
+        end_ns: Host time it recorded again (ns), or the recording's end.
+        back: Whether it came back (False: the gap runs to the end).
+    """
+
+    device: str
+    start_ns: int
+    end_ns: int
+    back: bool
+
+    @property
+    def seconds(self) -> float:
+        """The gap's length (s)."""
+        return (self.end_ns - self.start_ns) / 1e9
+
+
+def _gaps(faults: Iterable[Fault], end_ns: int | None) -> tuple[DeviceGap, ...]:
+    """Pair each device's ``disconnected`` / ``source-died`` with its next ``reconnected``."""
+    open_since: dict[str, int] = {}
+    out: list[DeviceGap] = []
+    for f in sorted(faults, key=lambda f: f.t_ns):
+        if f.kind in ("disconnected", "source-died"):
+            open_since.setdefault(f.device, f.t_ns)
+        elif f.kind == "reconnected" and f.device in open_since:
+            out.append(DeviceGap(f.device, open_since.pop(f.device), f.t_ns, back=True))
+    for device, t0 in open_since.items():
+        out.append(DeviceGap(device, t0, max(t0, end_ns if end_ns is not None else t0), back=False))
+    return tuple(sorted(out, key=lambda g: g.start_ns))
 
 
 def _time_bases(segments: Mapping[tuple[str, TimeBaseName], list[int]]) -> tuple[TimeBase, ...]:
@@ -625,7 +665,8 @@ class RecordingInfo:
     ``start_ns``/``end_ns`` (and the duration) are those of one clock: the first of
     ``time_bases``. A file whose streams are on different clocks (written before every message
     of a file was put on one clock) has ``mixed_time_bases`` True, and ``time_bases`` names the
-    streams on each.
+    streams on each. ``faults`` are the ``/faults`` records in time order; ``gaps`` the spans
+    each device was lost.
     """
 
     path: Path
@@ -641,6 +682,8 @@ class RecordingInfo:
     attachments: tuple[str, ...]
     metadata: Mapping[str, Mapping[str, str]]
     time_bases: tuple[TimeBase, ...] = ()
+    faults: tuple[Fault, ...] = ()
+    gaps: tuple[DeviceGap, ...] = ()
 
     @property
     def mixed_time_bases(self) -> bool:
@@ -704,6 +747,20 @@ class RecordingInfo:
                 }
                 for b in self.time_bases
             ],
+            "faults": [
+                {"kind": f.kind, "device": f.device, "t_ns": f.t_ns, "detail": f.detail}
+                for f in self.faults
+            ],
+            "gaps": [
+                {
+                    "device": g.device,
+                    "start_ns": g.start_ns,
+                    "end_ns": g.end_ns,
+                    "seconds": g.seconds,
+                    "back": g.back,
+                }
+                for g in self.gaps
+            ],
         }
 
 
@@ -727,6 +784,7 @@ def info(path: Path) -> RecordingInfo:
     last_seq: dict[str, int] = {}
     gaps: dict[str, int] = {}
     last_status: bytes | None = None
+    faults: list[Fault] = []
     segments: dict[tuple[str, TimeBaseName], list[int]] = {}  # [messages, first, last]
     for rec in scan.records():
         if not isinstance(rec, Message):
@@ -752,6 +810,10 @@ def info(path: Path) -> RecordingInfo:
         last_seq[t] = rec.sequence
         if t == "/diagnostics":
             last_status = rec.data
+        elif t == FAULTS_TOPIC:
+            fault = _fault(path, rec.data)
+            if fault is not None:
+                faults.append(fault)
     drops = _drops(path, meta.get("mocaprig.summary"), last_status)
     streams = []
     for topic_name in sorted(set(channels) | set(counts)):
@@ -797,7 +859,18 @@ def info(path: Path) -> RecordingInfo:
         attachments=attachments,
         metadata=meta,
         time_bases=bases,
+        faults=tuple(sorted(faults, key=lambda f: f.t_ns)),
+        gaps=_gaps(faults, bases[0].end_ns if bases else None),
     )
+
+
+def _fault(path: Path, data: bytes) -> Fault | None:
+    """The fault a ``/faults`` message holds (None, logged, when it cannot be read)."""
+    try:
+        return Fault.from_log(LogMsg.decode(data))
+    except RecordingError as err:
+        _log.warning("%s: a /faults message cannot be read: %s", path, err)
+        return None
 
 
 def _drops(

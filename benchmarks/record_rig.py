@@ -14,8 +14,14 @@ Cells (all with the recorder's defaults: lz4, 1 MiB chunks, one writer thread):
    (+ the DAVIS): the largest data rate that records with zero drops on this machine (the
    per-stream queues hold ~2 s of frames, so a cell of 10 s shows a sustained deficit).
 
-Run: ``.venv/bin/python benchmarks/record_rig.py [--seconds 30] [--dir DIR]``. The last line
-is one JSON object (``drops_total``, ``mb_per_s``, ``disk_mb_per_s``, ``ratio_to_disk``, ...).
+5. **live view** (``--live``): the rig of cell 2 recorded again, for as long, with the Foxglove
+   live view behind the recorder (``acquire/live_view.py``) and a WebSocket client subscribed to
+   every channel: the recorder's drops with and without it, and the rate each live image topic
+   reached the client (docs/live-view.md).
+
+Run: ``.venv/bin/python benchmarks/record_rig.py [--seconds 30] [--dir DIR] [--live]``. The last
+line is one JSON object (``drops_total``, ``mb_per_s``, ``disk_mb_per_s``, ``ratio_to_disk``,
+with ``--live`` also ``live``: drops with and without it, client rates per topic, ...).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mocaprig.acquire.events import make_events
+from mocaprig.acquire.live_view import LiveClient, LiveView
 from mocaprig.acquire.recorder import Recorder, StreamHandle
 from mocaprig.acquire.recording_format import IMU_DTYPE, EventPacket, ImageMsg, ImuPacket
 
@@ -65,14 +72,24 @@ class _Stream:
     queue_messages: int = 4096
 
 
-def _rig_streams(rng: np.random.Generator, cams: int, w: int, h: int, fps: int) -> list[_Stream]:
+def _rig_streams(
+    rng: np.random.Generator,
+    cams: int,
+    w: int,
+    h: int,
+    fps: int,
+    *,
+    events_per_s: int = 5_000_000,
+) -> list[_Stream]:
+    """Paced streams of the rig: ``cams`` D415s (IR + depth at ``w``×``h``@``fps``) and the
+    DAVIS (``events_per_s`` in 1 kHz packets, frames at 25 Hz, IMU at 1 kHz in 100 packets/s)."""
     out: list[_Stream] = []
     for c in range(cams):
         ir = [ImageMsg(_ir_like(rng, h, w), "mono8") for _ in range(4)]
         depth = [ImageMsg(_depth_like(rng, h, w), "16UC1") for _ in range(4)]
         out.append(_Stream(f"/d415/cam{c}/ir", ImageMsg, fps, ir, 64))
         out.append(_Stream(f"/d415/cam{c}/depth", ImageMsg, fps, depth, 64))
-    n_ev = 5000  # 5 M events/s in 1 kHz packets
+    n_ev = events_per_s // 1000  # 1 kHz packets
     packets = []
     for i in range(8):
         t = np.sort(rng.integers(0, 1000, n_ev)).astype(np.int64) + i * 1000
@@ -108,10 +125,20 @@ def raw_disk_mb_per_s(folder: Path, total_mb: int = 768) -> float:
     return n * len(block) / wall / 1e6
 
 
-def record_cell(folder: Path, name: str, streams: list[_Stream], seconds: float) -> dict[str, Any]:
-    """Record paced producers for ``seconds``; drops per stream and MB/s on disk (with fsync)."""
+def record_cell(
+    folder: Path,
+    name: str,
+    streams: list[_Stream],
+    seconds: float,
+    *,
+    live: LiveView | None = None,
+) -> dict[str, Any]:
+    """Record paced producers for ``seconds``; drops per stream and MB/s on disk (with fsync).
+    With ``live``, the live view is fed behind the recorder (``Recorder(tap=...)``)."""
     path = folder / f"{name}.mcap"
-    rec = Recorder(path, min_free_disk_bytes=0)
+    rec = Recorder(path, min_free_disk_bytes=0, tap=None if live is None else live.tap)
+    if live is not None:
+        live.follow(rec)
     stop = threading.Event()
     t0 = time.perf_counter()
     with rec:
@@ -165,6 +192,24 @@ def record_cell(folder: Path, name: str, streams: list[_Stream], seconds: float)
     }
 
 
+def live_cell(folder: Path, streams: list[_Stream], seconds: float) -> dict[str, Any]:
+    """The rig recorded with the live view and a subscribed client: recorder drops, live rates."""
+    with LiveView(port=0) as live, LiveClient("127.0.0.1", live.port) as client:
+        cell = record_cell(folder, "rig_live", streams, seconds, live=live)
+        stats = live.stats()
+        rates = {t: round(client.rate_hz(t, skip_s=1.0), 1) for t in sorted(client.channels)}
+    cams = [r for t, r in rates.items() if t.startswith("/d415/")]
+    return {
+        **cell,
+        "live_rates_hz": rates,
+        "live_min_camera_rate_hz": min(cams, default=0.0),
+        "live_published_total": stats.published_total,
+        "live_dropped_total": stats.dropped_total,
+        "live_dropped_per_topic": dict(stats.dropped),
+        "live_decimated_total": sum(stats.decimated.values()),
+    }
+
+
 def saturation_cell(folder: Path, seconds: float) -> dict[str, float]:
     """Depth frames as fast as ``put()`` accepts: the recorder's ceiling on disk (MB/s)."""
     rng = np.random.default_rng(0)
@@ -212,6 +257,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=30.0, help="length of the rig cell (s)")
     ap.add_argument("--cell-seconds", type=float, default=10.0, help="other cells (s)")
     ap.add_argument("--dir", type=Path, default=None, help="where to write (default: a temp dir)")
+    ap.add_argument(
+        "--live", action="store_true", help="also record the rig with the live view and a client"
+    )
     args = ap.parse_args()
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
@@ -221,6 +269,12 @@ def main() -> None:
         rng = np.random.default_rng(0)
         rig = record_cell(folder, "rig", _rig_streams(rng, 4, 848, 480, 30), args.seconds)
         print("rig 4x848x480@30 + DAVIS 5 Mev/s:", json.dumps(rig), flush=True)
+        live: dict[str, Any] | None = None
+        if args.live:
+            rng_live = np.random.default_rng(0)  # the same rig as the cell above
+            streams = _rig_streams(rng_live, 4, 848, 480, 30)
+            live = live_cell(folder, streams, args.seconds)
+            print("rig with the live view + a client:", json.dumps(live), flush=True)
         sat = saturation_cell(folder, 5.0)
         print(f"saturation (depth frames, lz4): {sat['mb_per_s']} MB/s", flush=True)
         rigs: dict[str, dict[str, Any]] = {}
@@ -257,6 +311,19 @@ def main() -> None:
         },
         "peak_rss_mb": round(rss),
     }
+    if live is not None:
+        result["live"] = {
+            "drops_without": rig["drops_total"],
+            "drops_with": live["drops_total"],
+            "drops_per_stream_with": live["drops_per_stream"],
+            "mb_per_s_with": live["mb_per_s"],
+            "rates_hz": live["live_rates_hz"],
+            "min_camera_rate_hz": live["live_min_camera_rate_hz"],
+            "published_total": live["live_published_total"],
+            "live_dropped_total": live["live_dropped_total"],
+            "live_dropped_per_topic": live["live_dropped_per_topic"],
+            "decimated_total": live["live_decimated_total"],
+        }
     print(json.dumps(result))
 
 

@@ -19,7 +19,7 @@ import math
 import os
 import struct
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Literal
@@ -58,6 +58,7 @@ class _Param:
     type_code: int  # -1 char, 1 byte, 2 int16, 4 float
     dims: tuple[int, ...]
     data: bytes
+    offset: int = 0  # of ``data`` in the file, bytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +85,8 @@ class C3DLayout:
         units_raw: POINT:UNITS as written, or None when absent.
         model_outputs: labels listed in POINT:ANGLES/FORCES/MOMENTS/POWERS/SCALARS/REACTIONS.
         strings: selected string parameters (``MANUFACTURER:COMPANY`` …).
+        parameter_offsets: ``"GROUP:NAME"`` -> byte offset of the parameter's values in the file
+            (for writers that patch a value in place, e.g. the frame count).
     """
 
     path: str
@@ -104,6 +107,7 @@ class C3DLayout:
     units_raw: str | None
     model_outputs: frozenset[str]
     strings: Mapping[str, str]
+    parameter_offsets: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def is_float(self) -> bool:
@@ -259,7 +263,8 @@ def _walk_parameters(
                     f"{abs(type_code)} bytes, more than its record holds"
                 )
                 raise w.fail(msg)
-            params.append((gid, name, _Param(type_code, dims, w.buf[data_start:data_end])))
+            prm = _Param(type_code, dims, w.buf[data_start:data_end], data_start)
+            params.append((gid, name, prm))
         if next_pos is None:
             return groups, params
         pos = next_pos
@@ -528,6 +533,9 @@ def validate_c3d_bytes(buf: bytes, p: str) -> C3DLayout:
         units_raw=units_raw,
         model_outputs=frozenset(model_outputs),
         strings=MappingProxyType(strings),
+        parameter_offsets=MappingProxyType(
+            {f"{g}:{n}": prm.offset for g, group in params.items() for n, prm in group.items()}
+        ),
     )
 
 

@@ -26,7 +26,7 @@ from mocaprig.calib.vicon_records import (
 )
 from mocaprig.errors import ValidationError
 
-__all__ = ["write_c3d"]
+__all__ = ["C3DFrameWriter", "write_c3d"]
 
 _log = logging.getLogger(__name__)
 
@@ -174,3 +174,161 @@ def write_c3d(
         0 if analogs is None else analogs.n_channels,
     )
     return out
+
+
+class C3DFrameWriter:
+    """Write an Intel float C3D of point trajectories block by block (memory bounded by a block).
+
+    For outputs too long to hold (EventCap's 1 kHz keypoints over a whole take): the header and
+    parameter section are written by :func:`write_c3d` (ezc3d) for one frame, the frames are
+    appended as they come, and on :meth:`close` the frame count (header, POINT:FRAMES,
+    TRIAL:ACTUAL_END_FIELD) is set and the data padded to a whole block, giving the same bytes as
+    :func:`write_c3d` on all the frames at once. The file is written beside ``path`` and moved
+    into place on :meth:`close`; leaving the ``with`` block on an exception removes it.
+
+    Args:
+        path: The C3D to write.
+        labels: The point labels (M).
+        rate_hz: Frame rate.
+        first_frame: 1-based capture frame of the first frame written.
+        unit: POINT:UNITS of the file.
+        source: Named in the file's records (what the points came from).
+        overwrite: Replace an existing ``path``.
+
+    Raises:
+        ViconFileError: ``path`` exists and ``overwrite`` is False, or a write failed.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        labels: tuple[str, ...],
+        rate_hz: float,
+        first_frame: int = 1,
+        unit: Literal["mm", "m"] = "mm",
+        source: str = "",
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            msg = f"{self.path}: the file exists; pass overwrite=True to replace it"
+            raise ViconFileError(msg, path=self.path)
+        if first_frame < 1:
+            msg = f"first_frame must be >= 1, got {first_frame}"
+            raise ValidationError(msg)
+        self._overwrite = overwrite
+        self._n_points = len(labels)
+        self._first = first_frame
+        self._per_m = 1.0 / METRES_PER_UNIT[unit]
+        self._scale = 0.01 * 1e-3 * self._per_m
+        self._frames = 0
+        self._closed = False
+        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part.c3d")
+        gap = MarkerTrajectories(
+            labels=labels,
+            rate_hz=rate_hz,
+            positions_m=np.full((1, len(labels), 3), np.nan),
+            residuals_m=np.full((1, len(labels)), np.nan),
+            first_frame=first_frame,
+            source_unit=unit,
+            source=source,
+            metadata={},
+        )
+        try:
+            write_c3d(self._tmp, gap, unit=unit, overwrite=True)
+            layout = validate_c3d(self._tmp)
+            self._data_offset = layout.data_offset
+            self._frames_at = layout.parameter_offsets["POINT:FRAMES"]
+            self._end_at = layout.parameter_offsets["TRIAL:ACTUAL_END_FIELD"]
+            self._rotation_at = layout.parameter_offsets.get("ROTATION:DATA_START")
+            self._data_block = layout.data_start_block
+            self._fh = self._tmp.open("r+b")
+            self._fh.truncate(self._data_offset)
+            self._fh.seek(self._data_offset)
+        except Exception:
+            self._tmp.unlink(missing_ok=True)
+            raise
+
+    def __enter__(self) -> C3DFrameWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()
+
+    @property
+    def frames(self) -> int:
+        """Frames written so far."""
+        return self._frames
+
+    def write(self, positions_m: FloatArray, residuals_m: FloatArray | None = None) -> None:
+        """Append frames: positions ``(F, M, 3)`` m (NaN: a gap), residuals ``(F, M)`` m."""
+        pos = np.asarray(positions_m, dtype=np.float64)
+        if pos.ndim != 3 or pos.shape[1:] != (self._n_points, 3):
+            msg = f"{self.path}: positions must be (F, {self._n_points}, 3), got {pos.shape}"
+            raise ValidationError(msg)
+        res = np.zeros(pos.shape[:2]) if residuals_m is None else np.asarray(residuals_m)
+        valid = np.asarray(np.isfinite(pos).all(axis=-1), dtype=bool)
+        res_file = np.clip(np.where(np.isnan(res), 0.0, res * self._per_m), 0, 255 * self._scale)
+        block = np.empty((pos.shape[0], self._n_points, 4), dtype="<f4")
+        block[..., :3] = np.where(valid[..., None], pos * self._per_m, 0.0)
+        block[..., 3] = np.where(valid, np.rint(res_file / self._scale), -1.0)
+        try:
+            self._fh.write(block.tobytes())
+        except OSError as err:
+            self.discard()
+            msg = f"{self.path}: writing the C3D frames failed ({err}); check free space"
+            raise ViconFileError(msg, path=self.path) from err
+        self._frames += pos.shape[0]
+
+    def close(self) -> Path:
+        """Set the frame count, pad the data to a whole block and move the file into place."""
+        if self._closed:
+            return self.path
+        if self._frames == 0:
+            self.discard()
+            msg = f"{self.path}: no frames were written; a C3D needs at least one"
+            raise ViconFileError(msg, path=self.path)
+        last = self._first + self._frames - 1
+        try:
+            # ezc3d pads the data with 512 - n % 512 bytes (a whole block when n fills its
+            # blocks) and points ROTATION:DATA_START past them; the same bytes here.
+            n = self._fh.tell() - self._data_offset
+            pad = 512 - n % 512
+            self._fh.write(b"\0" * pad)
+            if self._rotation_at is not None:
+                block = self._data_block + (n + pad) // 512
+                self._fh.seek(self._rotation_at)
+                # A block number past 16 bits cannot be stored; 0 says "no rotation section".
+                self._fh.write(struct.pack("<H", block if block <= 65535 else 0))
+            self._fh.seek(8)
+            self._fh.write(struct.pack("<H", min(last, 65535)))
+            self._fh.seek(self._frames_at)
+            self._fh.write(struct.pack("<H", min(self._frames, 65535)))
+            self._fh.seek(self._end_at)
+            self._fh.write(struct.pack("<HH", last % 65536, last // 65536))
+            self._fh.close()
+            if self.path.exists() and not self._overwrite:
+                msg = f"{self.path}: the file appeared while writing; pass overwrite=True"
+                raise ViconFileError(msg, path=self.path)
+            self._tmp.replace(self.path)
+        except ViconFileError:
+            self.discard()
+            raise
+        except OSError as err:
+            self.discard()
+            msg = f"{self.path}: finishing the C3D file failed ({err}); check free space"
+            raise ViconFileError(msg, path=self.path) from err
+        self._closed = True
+        _log.info("wrote %s (%d points x %d frames)", self.path, self._n_points, self._frames)
+        return self.path
+
+    def discard(self) -> None:
+        """Stop and remove the partial file (nothing is left at ``path``)."""
+        self._closed = True
+        with contextlib.suppress(OSError):
+            self._fh.close()
+        self._tmp.unlink(missing_ok=True)

@@ -46,11 +46,15 @@ Vicon markers and the intrinsics fixed. A camera whose reprojection RMS exceeds 
 --sync-channel (default D415_SYNC: the sync box's toggle output, docs/wiring.md §7), the D415
 clocks come from its edges instead (µs, sub-ppm); the notes say which was used. Relating a
 D415 frame (stamped mid-exposure) to a sync pulse needs where the master's pulse falls, which
-is undocumented for the D415: --d415-pulse-at exposure-start (default) or readout-start
-(Intel's answers for the D4xx family), measured on the rig with the LED test of
-docs/d415-timing.md §4; a wrong one moves the sync-channel and DAVIS clocks by about one
-exposure, or leaves them unpaired. The calibration file records the convention assumed
-(statistics d415_pulse_at_readout_start, d415_slave_trigger_delay_us).
+is undocumented for the D415: exposure-start or readout-start (Intel's answers for the D4xx
+family). The calibration fits the clocks under both and keeps the one they fit; when they do
+not tell, --d415-pulse-at (default exposure-start) stays and a note says so
+(--no-measure-pulse-phase: always --d415-pulse-at; measure it with the LED test of
+docs/d415-timing.md §4). A wrong one moves the sync-channel and DAVIS clocks by about one
+exposure, or leaves them unpaired. The sync box's latency (--sync-latency-us) and a slave's
+trigger delay are not visible in a recording: they stay assumptions, each noted with its
+effect. The calibration file records the convention used (statistics
+d415_pulse_at_readout_start, d415_slave_trigger_delay_us).
 
 examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml
@@ -62,6 +66,7 @@ examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel none
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --d415-pulse-at readout-start
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --slave-trigger-delay-us 790
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-latency-us 12.5
 """
 
 _EVALUATE_EPILOG = """\
@@ -103,7 +108,13 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
         metavar="OUT.mcap",
         help="also write a copy of the recording with the calibration attached",
     )
-    vic.add_argument("--report", type=Path, default=None, metavar="DIR", help="write figures")
+    vic.add_argument(
+        "--report",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="write a report: figures, summary.json and index.html (open it in a browser)",
+    )
     vic.add_argument("--force", action="store_true", help="write even above the thresholds")
     vic.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     vic.add_argument("--max-rms-px", type=float, default=None, help="refusal threshold (px)")
@@ -136,6 +147,21 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
         help="a D415 slave's exposure start after the pulse (µs; default: the convention's, "
         f"{SLAVE_TRIGGER_DELAY_US['exposure-start']:g} for exposure-start, "
         f"{SLAVE_TRIGGER_DELAY_US['readout-start']:g} for readout-start)",
+    )
+    vic.add_argument(
+        "--sync-latency-us",
+        type=float,
+        default=None,
+        metavar="US",
+        help="the sync wiring's delay from the master's pulse to the Vicon channel's edge (µs; "
+        "default 2, the project's sync box). No recording shows it: measure pulse in vs toggle "
+        "out with a scope; a wrong value shifts every D415 clock by the difference",
+    )
+    vic.add_argument(
+        "--no-measure-pulse-phase",
+        dest="measure_pulse_phase",
+        action="store_false",
+        help="use --d415-pulse-at as given instead of choosing the convention the clocks fit",
     )
     add_json_flag(vic)
     vic.set_defaults(func=calibrate_vicon_command)
@@ -181,32 +207,46 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
     kw["sync_channel"] = None if args.sync_channel.lower() == "none" else args.sync_channel
     kw["d415_pulse_at"] = args.d415_pulse_at
     kw["slave_trigger_delay_us"] = args.slave_trigger_delay_us
+    kw["measure_pulse_phase"] = args.measure_pulse_phase
+    if args.sync_latency_us is not None:
+        kw["sync_latency_us"] = args.sync_latency_us
     if args.max_rms_px is not None:
         kw["max_rms_px"] = args.max_rms_px
     if args.min_inliers is not None:
         kw["min_inliers"] = args.min_inliers
     if args.camera:
         kw["cameras"] = tuple(args.camera)
+    bar = ProgressBar("calibrate vicon", unit="steps")
     result = calibrate_vicon(
-        args.session,
-        args.vicon,
-        options=CalibrationOptions(**kw),
-        progress=ProgressBar("calibrate"),
+        args.session, args.vicon, options=CalibrationOptions(**kw), progress=bar
     )
+    bar.finish()
     write_calibration(result.calibration, out, overwrite=args.overwrite)
     if args.attach_to is not None:
         attach_calibration(
             args.session, args.attach_to, result.calibration, overwrite=args.overwrite
         )
-    figures: list[str] = []
-    if args.report is not None:
-        from mocaprig.calib.report import write_report
-
-        figures = [str(p) for p in write_report(result, args.report, overwrite=args.overwrite)]
     summary = result.summary()
     summary["out"] = str(out)
     summary["attached_to"] = None if args.attach_to is None else str(args.attach_to)
+    figures: list[str] = []
+    index: str | None = None
+    if args.report is not None:
+        from mocaprig.calib.report import write_report
+        from mocaprig.calib.vicon import read_trajectories
+
+        report = write_report(
+            result,
+            args.report,
+            overwrite=args.overwrite,
+            trajectories=read_trajectories(args.vicon, unit=args.unit),
+            summary=summary,
+            progress=ProgressBar("calibration report", unit="files"),
+        )
+        figures = [str(p) for p in report.figures]
+        index = str(report.index)
     summary["figures"] = figures
+    summary["report"] = index
     if args.json:
         emit_json(summary)
         return 0
@@ -225,8 +265,8 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
         print(f"  note: {n}")
     if args.attach_to is not None:
         print(f"  recording with the calibration attached -> {args.attach_to}")
-    if figures:
-        print(f"  report: {len(figures)} figures in {args.report}")
+    if index is not None:
+        print(f"  report: {len(figures)} figures and the summary -> {index}")
     return 0
 
 

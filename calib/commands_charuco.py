@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -103,9 +103,10 @@ def read_board_views(
     spec: CharucoBoardSpec,
     *,
     every: int = 1,
-    progress: ProgressBar | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[list[BoardView], tuple[int, int]]:
-    """Detect the board in every ``every``-th image of one camera of a recording.
+    """Detect the board in every ``every``-th image of one camera of a recording
+    (``progress``: ``(images_done, images_total)``).
 
     Returns:
         The views (stamped with the log time, ns; empty views where the board was not seen)
@@ -132,6 +133,7 @@ def read_board_views(
             msg = f"{session} has no images of camera {camera!r} ({topic}); cameras: {cams}"
             raise CalibrationError(msg)
         total = sum(1 for _ in rec.messages(topic))
+        reported = 0
         for i, (t_ns, msg_img) in enumerate(rec.images(topic)):
             if i % every:
                 continue
@@ -140,6 +142,9 @@ def read_board_views(
             views.append(detect_charuco(img, spec, t_ns=int(t_ns)))
             if progress is not None:
                 progress(i + 1, total)
+                reported = i + 1
+        if progress is not None and reported < total:
+            progress(total, total)  # the images skipped by ``every`` are done too
     if size is None:
         msg = f"{session}: topic {topic} holds no image; nothing to calibrate {camera!r} from"
         raise CalibrationError(msg)
@@ -202,7 +207,7 @@ def calibrate_intrinsics_command(
         msg = f"{out} exists; pass --overwrite to replace it"
         raise ValidationError(msg)
     views, size = read_board_views(
-        session, camera, spec, every=every, progress=ProgressBar("detect")
+        session, camera, spec, every=every, progress=ProgressBar("detect", unit="images")
     )
     result = calibrate_intrinsics(
         views,
@@ -291,7 +296,9 @@ def calibrate_board_command(
         intr[r.camera] = r
     views = {}
     for cam in intr:
-        v, size = read_board_views(session, cam, spec, every=every, progress=ProgressBar(cam))
+        v, size = read_board_views(
+            session, cam, spec, every=every, progress=ProgressBar(cam, unit="images")
+        )
         if size != (intr[cam].width, intr[cam].height):
             msg = (
                 f"camera {cam}: images are {size[0]}×{size[1]} but its intrinsics are for "

@@ -8,12 +8,22 @@ decay towards the final level gives the time constant τ; each edge's switching 
 exact for a first-order edge). Edges are paired with the master's frames through a prior mapping
 good to a quarter period (the video clock), and a line device → Vicon is fitted
 (:func:`clock_from_sync_edges`): µs-level offset and sub-ppm drift.
+
+A real input need not be a pure RC: an anti-alias filter after it delays the edge by its group
+delay (≈ 45–450 µs for a 2-pole filter at 5–0.5 kHz) and rounds its start, which a first-order
+fit reads as a later switch. ``edge_model="fit"`` (what the calibration uses) takes the shape from
+the edges themselves: the RC followed by a 2-pole Butterworth low-pass, its two time constants
+fitted to every edge at once (the edges fall at all sampling phases, so together they sample
+the curve densely), the low-pass dropped when it does not lower the residuals; then each edge's
+switch is fitted with that shape. A pure delay (the sync box's latency) has no shape: no model
+can see it.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -52,6 +62,8 @@ class SyncEdges:
         high: The high level, channel units.
         noise: Robust noise of the samples (channel units).
         tau_ns: The edges' first-order time constant (ns), NaN when not measured.
+        lowpass_ns: Time constant ``1/(2π f_c)`` of the 2-pole low-pass fitted after the RC
+            (ns); 0 when the edges are first-order (or with ``edge_model`` ``"rc"``/``"none"``).
     """
 
     channel: str
@@ -62,6 +74,7 @@ class SyncEdges:
     high: float
     noise: float
     tau_ns: float
+    lowpass_ns: float = 0.0
 
     @property
     def count(self) -> int:
@@ -94,7 +107,9 @@ def find_sync_edges(
         t_ns: ``(S,)`` sample times (ns, increasing), e.g. Vicon-clock times of analog samples.
         values: ``(S,)`` samples (any unit).
         channel: The channel's label, for messages.
-        edge_model: ``"rc"`` (default) or ``"none"`` (switching instant = crossing).
+        edge_model: ``"rc"`` (default: first-order), ``"fit"`` (an RC and a 2-pole low-pass,
+            shape fitted to the edges, module doc) or ``"none"`` (switching instant =
+            crossing).
 
     Raises:
         ValidationError: bad shapes, non-increasing times or an unknown edge model.
@@ -106,8 +121,8 @@ def find_sync_edges(
     if t.ndim != 1 or v.shape != t.shape or t.size < 3:
         msg = f"find_sync_edges: t_ns and values must be 1-D of equal length ≥ 3, got {t.shape}"
         raise ValidationError(msg)
-    if edge_model not in ("rc", "none"):
-        msg = f"edge_model must be 'rc' or 'none', got {edge_model!r}"
+    if edge_model not in ("rc", "fit", "none"):
+        msg = f"edge_model must be 'rc', 'fit' or 'none', got {edge_model!r}"
         raise ValidationError(msg)
     if np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
         msg = "find_sync_edges: sample times must be finite and increasing"
@@ -139,6 +154,7 @@ def find_sync_edges(
     crossings: list[float] = []
     rising: list[bool] = []
     after: list[tuple[F64, F64]] = []  # (times, d) of the samples after each crossing
+    shape: list[tuple[F64, F64]] = []  # (times, progress 0 → 1) around each crossing
     for j in change:
         up = bool(filled[j] > 0)
         k = j - 1
@@ -152,6 +168,8 @@ def find_sync_edges(
         m = np.arange(k + 1, min(k + 12, v.size))
         d = ((high - v[m]) if up else (v[m] - low)) / step
         after.append((t[m], d))
+        w = np.arange(max(k - 4, 0), min(k + 14, v.size))
+        shape.append((t[w], ((v[w] - low) if up else (high - v[w])) / step))
     if not crossings:
         msg = (
             f"sync channel {channel!r}: no edges: the signal spans {lo_p:.3g} to {hi_p:.3g} but "
@@ -161,7 +179,8 @@ def find_sync_edges(
     cross = np.array(crossings)
     times = cross.copy()
     tau = math.nan
-    if edge_model == "rc":
+    lowpass = 0.0
+    if edge_model in ("rc", "fit"):
         lo_d, hi_d = _SYNC_RC_RANGE
         taus = []
         for tm, d in after:
@@ -175,6 +194,8 @@ def find_sync_edges(
                 if ok.any():
                     w = d[ok] ** 2
                     times[e] = float(np.sum(w * (tm[ok] + tau * np.log(d[ok]))) / np.sum(w))
+    if edge_model == "fit" and len(shape) >= 10:
+        times, tau, lowpass = _fit_edge_shape(shape, times, tau, noise / step)
     _log.info(
         "sync channel %s: %d edges, levels %.3g / %.3g, noise %.2g, τ %s",
         channel,
@@ -193,7 +214,103 @@ def find_sync_edges(
         high=high,
         noise=noise,
         tau_ns=tau,
+        lowpass_ns=lowpass,
     )
+
+
+def _step_response(tau_us: float, u_us: float) -> Callable[[F64], tuple[F64, F64]]:
+    """Unit step response of an RC (τ) followed by a 2-pole Butterworth of time constant ``u``
+    (``u`` = 0: none), and its derivative, as a function of the time since the step (µs; 0
+    before it)."""
+    if u_us <= 0:
+
+        def rc(t: F64) -> tuple[F64, F64]:
+            pos = t > 0
+            e = np.exp(-np.where(pos, t, 0.0) / tau_us)
+            return np.where(pos, 1.0 - e, 0.0), np.where(pos, e / tau_us, 0.0)
+
+        return rc
+    from scipy.signal import residue
+
+    wc = 1.0 / u_us
+    den = np.polymul(np.polymul([tau_us, 1.0], [1.0, math.sqrt(2.0) * wc, wc * wc]), [1.0, 0.0])
+    r, p, _ = residue([wc * wc], den)  # H(s)/s = Σ r_k / (s − p_k): h(t) = Σ r_k exp(p_k t)
+
+    def filtered(t: F64) -> tuple[F64, F64]:
+        pos = t > 0
+        ex = np.exp(np.multiply.outer(np.where(pos, t, 0.0), p))
+        return np.where(pos, np.real(ex @ r), 0.0), np.where(pos, np.real(ex @ (r * p)), 0.0)
+
+    return filtered
+
+
+def _fit_edge_shape(
+    shape: list[tuple[F64, F64]], times: F64, tau_ns: float, noise: float
+) -> tuple[F64, float, float]:
+    """The edge shape fitted to the edges (module doc): ``(switch times ns, τ ns, low-pass ns)``.
+
+    For a shape (τ, low-pass u) each edge's switch is found by Gauss–Newton; the shape's cost
+    is the sum of squared residuals of up to 80 edges spread over the channel with their best
+    switches (a profile over the switches). τ alone is fitted first (first-order), then τ and u
+    (Nelder–Mead on their logs, from short and long starts); u is kept only when it lowers the
+    cost clearly beyond the noise. Then every edge's switch is fitted with the shape. ``times``
+    are the first-order switches, or the crossings when ``tau_ns`` is NaN (edges too fast for
+    the first-order estimate)."""
+    from scipy.optimize import minimize, minimize_scalar
+
+    # Padded (edges, samples) arrays in µs relative to each edge's starting estimate.
+    width = max(len(tm) for tm, _ in shape)
+    tt = np.zeros((len(shape), width))
+    gg = np.zeros((len(shape), width))
+    ok = np.zeros((len(shape), width), dtype=bool)
+    for e, ((tm, g), t0) in enumerate(zip(shape, times, strict=True)):
+        tt[e, : len(tm)] = (tm - t0) * 1e-3
+        gg[e, : len(g)] = g
+        ok[e, : len(g)] = True
+    pick = np.unique(np.linspace(0, len(shape) - 1, min(80, len(shape))).round().astype(int))
+    sigma = max(noise, 1e-4)
+    first_order = math.isfinite(tau_ns)
+    tau0_us = tau_ns * 1e-3 if first_order else 300.0
+    # A first-order edge crosses mid-level τ·ln 2 after its switch.
+    start = 0.0 if first_order else -tau0_us * math.log(2.0)
+
+    def switches(tau_us: float, u_us: float, rows: npt.NDArray[np.intp]) -> tuple[F64, float]:
+        """Each edge's best switch (µs, relative) under the shape, and the shape's cost."""
+        h = _step_response(tau_us, u_us)
+        t, g, m = tt[rows], gg[rows], ok[rows]
+        shifts = np.full(rows.size, start - math.sqrt(2.0) * u_us)
+        for _ in range(30):
+            model, slope = h(t - shifts[:, None])
+            slope = np.where(m, slope, 0.0)
+            num = np.sum(slope * np.where(m, g - model, 0.0), axis=1)
+            den = np.sum(slope * slope, axis=1)
+            step = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+            shifts -= np.clip(step, -0.5 * tau_us, 0.5 * tau_us)
+            if float(np.max(np.abs(step))) < 1e-3:
+                break
+        model, _ = h(t - shifts[:, None])
+        cost = float(np.sum(np.where(m, (g - model) / sigma, 0.0) ** 2))
+        return shifts, cost
+
+    def cost(x: F64) -> float:
+        return switches(math.exp(x[0]), math.exp(x[1]) if x.size > 1 else 0.0, pick)[1]
+
+    lo, hi = math.log(0.2 * tau0_us), math.log(5.0 * tau0_us)
+    rc = minimize_scalar(
+        lambda x: cost(np.array([x])), bounds=(lo, hi), method="bounded",
+        options={"xatol": 1e-4},
+    )  # fmt: skip
+    best_cost, tau_us, u_us = float(rc.fun), math.exp(float(rc.x)), 0.0
+    for u0 in (0.05, 0.3, 1.5):  # short to long low-pass starts, as fractions of τ
+        x0 = np.array([math.log(tau_us), math.log(max(u0 * tau_us, 1.0))])
+        lp = minimize(
+            cost, x0, method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 0.1, "maxfev": 150}
+        )
+        # Keep the low-pass only when it explains clearly more than the noise.
+        if float(lp.fun) < best_cost - 10.0 and math.exp(float(lp.x[1])) >= 0.5:
+            best_cost, tau_us, u_us = float(lp.fun), math.exp(lp.x[0]), math.exp(lp.x[1])
+    shifts, _ = switches(tau_us, u_us, np.arange(len(shape)))
+    return times + shifts * 1e3, tau_us * 1e3, u_us * 1e3
 
 
 def clock_from_sync_edges(

@@ -80,7 +80,9 @@ from mocaprig.calib.registration import CameraRegistration, register_camera
 from mocaprig.calib.vicon_calibration_davis import (
     DavisPulses,
     davis_clock,
+    davis_motion,
     davis_pulse_inputs,
+    motion_period_shift,
 )
 from mocaprig.calib.vicon_calibration_frames import (
     CalibCamera,
@@ -91,6 +93,7 @@ from mocaprig.calib.vicon_calibration_frames import (
 from mocaprig.calib.vicon_calibration_options import (
     MAX_RMS_PX,
     CalibrationOptions,
+    D415PulseAt,
     D415PulseTiming,
 )
 from mocaprig.calib.vicon_calibration_pooled_clock import Tie, pooled_clocks, tie_by_counters
@@ -210,6 +213,111 @@ def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
             out[-1] = (out[-1][0], max(out[-1][1], hi))
         else:
             out.append((lo, hi))
+    return out
+
+
+def _pulse_timings(opt: CalibrationOptions) -> list[D415PulseTiming]:
+    """The pulse timings to try: the assumed one, and the other published convention when
+    ``opt.measure_pulse_phase``."""
+    assumed = opt.pulse_timing
+    if not opt.measure_pulse_phase:
+        return [assumed]
+    other: D415PulseAt = (
+        "readout-start" if assumed.pulse_at == "exposure-start" else "exposure-start"
+    )
+    return [assumed, D415PulseTiming.preset(other)]
+
+
+def _with_pulse_timing(opt: CalibrationOptions, timing: D415PulseTiming) -> CalibrationOptions:
+    """``opt`` with ``timing`` as its pulse convention (``opt`` itself when it already is)."""
+    if timing == opt.pulse_timing:
+        return opt
+    return dataclasses.replace(
+        opt, d415_pulse_at=timing.pulse_at, slave_trigger_delay_us=timing.slave_trigger_delay_us
+    )
+
+
+def _pool_misfit_ns(
+    mappings: Mapping[str, ClockMapping], fits: Mapping[str, tuple[F64, F64, F64]]
+) -> float:
+    """Median |stretch offset − mapping| over every camera's stretches (ns)."""
+    res = []
+    for name, (t_w, d_w, _) in fits.items():
+        if name in mappings and len(t_w):
+            t = np.round(t_w).astype(np.int64)
+            res.append(np.abs(t_w + d_w - mappings[name].to_reference_ns(t)))
+    return float(np.median(np.concatenate(res))) if res else math.nan
+
+
+def _choose_pool(
+    pools: Sequence[
+        tuple[D415PulseTiming, dict[str, ClockMapping], list[str], dict[str, Tie], float]
+    ],
+    opt: CalibrationOptions,
+) -> tuple[D415PulseTiming, dict[str, ClockMapping], list[str], dict[str, Tie], list[str]]:
+    """The pooled video clock whose convention the stretches fit best, when clearly so (the
+    other's misfit exceeds it by 0.5 ms and by itself); else the assumed one. Also notes."""
+    first = pools[0]
+    if len(pools) < 2 or not (math.isfinite(pools[0][4]) and math.isfinite(pools[1][4])):
+        return (*first[:4], [])
+    best, worst = sorted(pools, key=lambda p: p[4])
+    if worst[4] - best[4] > max(500_000.0, best[4]):
+        note = (
+            f"clock: pulse phase from the video: {best[0].describe()} (the cameras' stretch "
+            f"offsets fit the pooled clock within {best[4] / 1e3:.0f} µs median, "
+            f"{worst[4] / 1e3:.0f} µs under the other convention)"
+        )
+        return (*best[:4], [note] if best[0] != opt.pulse_timing else [])
+    note = (
+        "clock: the video does not tell the pulse phase (the stretch offsets fit both "
+        f"conventions' pooled clocks, {pools[0][4] / 1e3:.0f} / {pools[1][4] / 1e3:.0f} µs "
+        f"median): {opt.pulse_timing.describe()} assumed"
+    )
+    return (*first[:4], [note])
+
+
+def _with_timing(
+    dp: DavisPulses, cams: Sequence[CalibCamera], timing: D415PulseTiming
+) -> DavisPulses:
+    """A DAVIS's pulse inputs with the master's frame delay of ``timing`` (the measured pulse
+    phase instead of the assumed one)."""
+    master = next((c for c in cams if c.name == dp.master), None)
+    if master is None or master.exposure_us is None:
+        return dp
+    delay = timing.master_frame_delay_ns(float(master.exposure_us) * 1e3)
+    return dataclasses.replace(dp, frame_delay_ns=delay)
+
+
+def _assumption_notes(
+    opt: CalibrationOptions, timing: D415PulseTiming, *, sync_used: bool
+) -> list[str]:
+    """What the recording cannot tell, the value taken and what a wrong one does."""
+    out = [
+        (
+            f"assumption: a D415 slave exposes {timing.slave_trigger_delay_us:g} µs after the "
+            "pulse (not observable: the video clocks are good to ≈ 0.1–0.5 ms); a slave whose "
+            "true delay differs by d has its clock d off (published: 0–0.2 ms with the pulse "
+            "at the exposure start, 0.7–0.9 ms at the readout start); measure it, "
+            "docs/d415-timing.md §4"
+        )
+    ]
+    if sync_used:
+        out.append(
+            f"assumption: the sync box toggles {opt.sync_latency_us:g} µs after the master's "
+            "pulse (a pure delay, not observable from the recording: every D415 clock is "
+            "off by the true latency minus this, e.g. up to 48 µs for a box with 50 µs); "
+            "measure pulse in vs toggle out with a scope (CalibrationOptions.sync_latency_us)"
+        )
+        out.append(
+            "assumption: analog sample 0 of a Vicon frame is taken at the frame's time (a "
+            "skew between the analog and the frame clocks shifts every sync clock by it)"
+        )
+    else:
+        out.append(
+            "without the sync channel the pulse phase comes from the pooled video clock alone "
+            f"({timing.describe()}); where the video cannot tell it, a wrong assumption moves "
+            "the DAVIS ↔ D415 relation by one exposure"
+        )
     return out
 
 
@@ -336,6 +444,7 @@ def calibrate_vicon(
         davis_inputs = davis_pulse_inputs(
             rec, cams, opt.sync_pulse_us, pulse_timing=opt.pulse_timing
         )
+        davis_motions = {dp.device: davis_motion(rec, dp.device) for dp in davis_inputs}
         sync = sync_channel_inputs(
             Path(vicon_c3d),
             rec,
@@ -364,7 +473,8 @@ def calibrate_vicon(
         for c in cams
     }
     ties: dict[str, Tie] = {}
-    expected_delays = _expected_slave_delays(cams, opt.pulse_timing)
+    timings_used: list[D415PulseTiming] = []
+    phase_notes: list[str] = []
     for _ in range(2):
         own: dict[str, ClockMapping] = {}
         for cam in cams:
@@ -374,17 +484,28 @@ def calibrate_vicon(
             )  # fmt: skip
             clock_fits[cam.name] = (t_w, d_w, s_w)
             own[cam.name] = line_clock(cam.name, t_w, d_w, s_w)
-        mappings, pool_notes = pooled_clocks(
-            {c.name: (stamps[c.name], counters[c.name]) for c in cams},
-            clock_fits,
-            own,
-            shift_cost,
-            {c.name: c.sync_mode for c in cams},
-            ties_out=ties,
-            expected_delays_ns=expected_delays,
-        )
+        # Where the master's pulse falls sets how much later than the master's a slave
+        # exposes (0.1 ms or an exposure + 0.77 ms): pool under each convention and keep the
+        # one the stretches fit (a wrong one splits the difference between the cameras).
+        pools = []
+        for timing in _pulse_timings(opt):
+            t_ties: dict[str, Tie] = {}
+            pooled, p_notes = pooled_clocks(
+                {c.name: (stamps[c.name], counters[c.name]) for c in cams},
+                clock_fits,
+                own,
+                shift_cost,
+                {c.name: c.sync_mode for c in cams},
+                ties_out=t_ties,
+                expected_delays_ns=_expected_slave_delays(cams, timing),
+            )
+            pools.append((timing, pooled, p_notes, t_ties, _pool_misfit_ns(pooled, clock_fits)))
+        pool_timing, mappings, pool_notes, pool_ties, phase_notes = _choose_pool(pools, opt)
+        ties.clear()
+        ties.update(pool_ties)
         video = mappings
-        mappings, sync_notes = sync_clocks(sync, video, ties, opt, shift_cost)
+        opt_used = _with_pulse_timing(opt, pool_timing)
+        mappings, sync_notes = sync_clocks(sync, video, ties, opt_used, shift_cost, timings_used)
         for cam in cams:
             if opt.clock_method == "claps+speed" and mappings[cam.name] is video[cam.name]:
                 mappings[cam.name] = claps_speed_clock(
@@ -417,14 +538,19 @@ def calibrate_vicon(
                 coarse_rms_m=registrations[cam.name].coarse_rms_m,
             )  # fmt: skip
     notes.extend(pool_notes)
+    notes.extend(phase_notes)
     notes.extend([sync.note] if sync.note else sync_notes)
-    timing = opt.pulse_timing
+    timing = timings_used[-1] if timings_used else pool_timing
+    how = "measured" if timing != opt.pulse_timing else "assumed"
     notes.append(
-        f"clock: D415 sync timing assumed: {timing.describe()} (--d415-pulse-at "
+        f"clock: D415 sync timing {how}: {timing.describe()} (--d415-pulse-at "
         f"{timing.pulse_at}; undocumented for the D415: measure it, docs/d415-timing.md §4); it "
         "sets how frames relate to the sync channel's edges, the DAVIS trigger pulses and the "
         "slaves' delays"
     )
+    notes.extend(_assumption_notes(opt, timing, sync_used=sync.edges is not None))
+    if timing != opt.pulse_timing:
+        davis_inputs = [_with_timing(dp, cams, timing) for dp in davis_inputs]
     clocks.extend(mappings[c.name] for c in cams)
     tick()
     refused = tuple(
@@ -470,13 +596,32 @@ def calibrate_vicon(
         if dp.master is None or master_map is None or dp.note:
             notes.append(f"{dp.device}: no clock mapping: {dp.note}")
             continue
+        master_frames = np.unique(
+            np.array([f.t_dev_ns for f in frames_all[dp.master]], dtype=np.int64)
+        )
+        motion = davis_motions.get(dp.device)
         try:
             dmap = davis_clock(
                 dp,
                 firsts[dp.master].dev_ns,
-                np.unique(np.array([f.t_dev_ns for f in frames_all[dp.master]], dtype=np.int64)),
+                master_frames,
                 master_map,
+                check_first_edge=motion is None,
             )
+            if motion is not None:
+                # Which edge is which frame is not in the timing: the motion decides.
+                period = float(np.median(np.diff(dp.edges_ns)))
+                shift, shift_note = motion_period_shift(dp.device, motion, dmap, interp.at, period)
+                notes.append(shift_note)
+                if shift:
+                    dmap = davis_clock(
+                        dp,
+                        firsts[dp.master].dev_ns,
+                        master_frames,
+                        master_map,
+                        period_shift=shift,
+                        check_first_edge=False,
+                    )
         except CalibrationError as err:
             notes.append(f"{dp.device}: no clock mapping: {err}")
             _log.warning("%s", err)

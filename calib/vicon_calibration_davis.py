@@ -5,11 +5,18 @@ DAVIS's external-input edges and the D415 master they come from (:class:`DavisPu
 :func:`davis_clock` pairs them with the master's frames (``calib.clock_fit.clock_from_pulses``)
 and composes the result with the master's Vicon mapping. The DAVIS's extrinsics come from
 ``mocaprig calibrate board``.
+
+A pulse train pairs equally well at every whole-period shift, and which edge is which frame is
+not in the timing (a master that loses its first frames still pulses for them). So the shift is
+chosen by the data: :func:`davis_motion` (the image motion of the DAVIS's APS frames) is compared
+with the Vicon markers' motion over the same intervals (:func:`motion_period_shift`) for each
+whole-period shift, and a shift the motion does not single out is refused, naming it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,9 +29,141 @@ from mocaprig.calib.vicon_calibration_frames import CalibCamera
 from mocaprig.calib.vicon_calibration_options import D415PulseTiming
 from mocaprig.errors import CalibrationError
 
-__all__ = ["DavisPulses", "davis_clock", "davis_pulse_inputs"]
+__all__ = [
+    "DavisMotion",
+    "DavisPulses",
+    "davis_clock",
+    "davis_motion",
+    "davis_pulse_inputs",
+    "motion_period_shift",
+]
 
 I64 = npt.NDArray[np.int64]
+F64 = npt.NDArray[np.float64]
+
+#: Whole periods tried either side of the first-edge pairing.
+_MAX_PERIOD_SHIFT = 8
+#: Fewest APS frame pairs for a motion score.
+_MIN_MOTION_FRAMES = 50
+#: Added to the markers' mean displacement before its log (m): about the Vicon's noise.
+_DISP_FLOOR_M = 1e-4
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class DavisMotion:
+    """Image motion of a DAVIS's APS frames: mean absolute difference of consecutive frames.
+
+    Attributes:
+        t0_ns: Exposure midpoint of the first frame of each pair (DAVIS ns since its reset).
+        t1_ns: Exposure midpoint of the second.
+        motion: Mean |difference| (counts) of the pair.
+    """
+
+    t0_ns: I64
+    t1_ns: I64
+    motion: F64
+
+
+def davis_motion(rec: Recording, device: str) -> DavisMotion | None:
+    """The :class:`DavisMotion` of a recorded DAVIS (None without APS frames and their info)."""
+    davis = RecordedDavis(rec, device)
+    mids: list[int] = []
+    diffs: list[float] = []
+    prev: F64 | None = None
+    prev_mid = 0
+    t0: list[int] = []
+    for fr in davis.frames():
+        if fr.info is None:
+            continue
+        img = np.asarray(fr.image, dtype=np.float64)
+        mid = 500 * (int(fr.info.t_start_exposure_us) + int(fr.info.t_end_exposure_us))
+        if prev is not None and prev.shape == img.shape:
+            t0.append(prev_mid)
+            mids.append(mid)
+            diffs.append(float(np.mean(np.abs(img - prev))))
+        prev, prev_mid = img, mid
+    if len(diffs) < _MIN_MOTION_FRAMES:
+        return None
+    return DavisMotion(
+        np.asarray(t0, dtype=np.int64), np.asarray(mids, dtype=np.int64), np.asarray(diffs)
+    )
+
+
+def motion_period_shift(
+    device: str,
+    motion: DavisMotion,
+    mapping: ClockMapping,
+    vicon_at: Callable[[npt.ArrayLike], F64],
+    period_ns: float,
+) -> tuple[int, str]:
+    """The whole-period shift of a DAVIS → Vicon ``mapping`` that the motion singles out.
+
+    For each offset on a 1 ms grid over ±(:data:`_MAX_PERIOD_SHIFT` + ½) periods, the change
+    of the log of the Vicon markers' mean displacement over each APS frame pair's interval
+    (``vicon_at``: positions ``(T, M, 3)`` at Vicon ns) is correlated with that of the frame
+    pairs' image motion; the peak, refined by a parabola, is rounded to whole periods.
+
+    Returns:
+        The shift ``k`` (the mapping is ``k`` periods late: add ``k·period``) and a note.
+
+    Raises:
+        CalibrationError: the motion does not single out a shift (no correlation, or a peak
+            within a quarter period of the midpoint between two shifts), naming the DAVIS and
+            what was measured.
+    """
+    t0 = mapping.to_reference_ns(motion.t0_ns).astype(np.float64)
+    t1 = mapping.to_reference_ns(motion.t1_ns).astype(np.float64)
+    # Changes of the log of both: the image motion is far from proportional to the markers'
+    # displacement (it saturates, and depends on the texture), and its slow envelope peaks
+    # broadly (10 ms biased on the simulated rig); its changes from one pair to the next time
+    # the onsets and stops (within 1–3 ms there).
+    m = np.diff(np.log(np.maximum(motion.motion, 1e-9)))
+    half = (_MAX_PERIOD_SHIFT + 0.5) * period_ns
+    grid = np.arange(-half, half + 1e6, 1e6)
+    scores = np.full(grid.size, np.nan)
+    for i, d in enumerate(grid):
+        p0, p1 = vicon_at(t0 + d), vicon_at(t1 + d)
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # pairs outside the trial: NaN
+            disp = np.nanmean(np.linalg.norm(p1 - p0, axis=-1), axis=-1)
+        b_all = np.diff(np.log(disp + _DISP_FLOOR_M))
+        ok = np.isfinite(b_all)
+        if ok.sum() < _MIN_MOTION_FRAMES:
+            continue
+        a, b = m[ok] - float(np.mean(m[ok])), b_all[ok] - float(np.mean(b_all[ok]))
+        den = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+        scores[i] = float(np.sum(a * b)) / den if den > 0 else np.nan
+    if not np.isfinite(scores).any():
+        msg = (
+            f"cannot pair {device}'s pulses with the D415 master's frames: the Vicon trial does "
+            "not cover its APS frames, so the whole-period shift is unobservable"
+        )
+        raise CalibrationError(msg)
+    i = int(np.nanargmax(scores))
+    peak = float(scores[i])
+    delta = float(grid[i])
+    if 0 < i < grid.size - 1 and np.isfinite(scores[i - 1 : i + 2]).all():
+        y0, y1, y2 = scores[i - 1], scores[i], scores[i + 1]
+        den = y0 - 2.0 * y1 + y2
+        if den < 0:
+            delta += 0.5 * float(y0 - y2) / float(den) * 1e6
+    k = round(delta / period_ns)
+    residual = delta - k * period_ns
+    note = (
+        f"{device}: pulse pairing by the motion: the APS frames' image motion correlates best "
+        f"({peak:.2f}) with the Vicon markers' {delta / 1e6:+.1f} ms from the first-edge pairing, "
+        f"i.e. {k:+d} periods ({residual / 1e6:+.1f} ms off a whole period)"
+    )
+    if peak < 0.3 or abs(residual) > 0.25 * period_ns:
+        msg = (
+            f"cannot pair {device}'s pulses with the D415 master's frames: the whole-period "
+            f"shift is unobservable here (the APS motion correlates {peak:.2f} with the Vicon's "
+            f"at {delta / 1e6:+.1f} ms, {residual / 1e6:+.1f} ms off a whole period of "
+            f"{period_ns / 1e6:.1f} ms; needs ≥ 0.3 and within a quarter period): record more "
+            "motion in the DAVIS's view, or start it before the D415s and lose no master frame"
+        )
+        raise CalibrationError(msg)
+    return k, note
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,16 +218,22 @@ def davis_pulse_inputs(
 
 
 def davis_clock(
-    pulses: DavisPulses, master_first_ns: int, master_frames_ns: I64, master_map: ClockMapping
+    pulses: DavisPulses,
+    master_first_ns: int,
+    master_frames_ns: I64,
+    master_map: ClockMapping,
+    *,
+    period_shift: int = 0,
+    check_first_edge: bool = True,
 ) -> ClockMapping:
     """The DAVIS → Vicon mapping through the master's pulses.
 
     Pairing prior (a periodic train pairs equally well at every whole-period shift): the DAVIS's
-    first edge after its timestamp reset is the master's first recorded frame. That holds when
-    the DAVIS was reset and listening before the master's pulse train began (the recorder
-    starts the DAVIS first; the simulated rig resets it at session time 0 and starts the D415s
-    then) and is checked: the first edge must come ≥ 1.5 periods after the reset, else the
-    train was already running and the pairing is refused.
+    first edge after its timestamp reset is the master's first recorded frame, moved by
+    ``period_shift`` whole periods (:func:`motion_period_shift` says how many: a master that
+    lost its first frames is that many periods on). With ``check_first_edge`` (no motion
+    check), the first edge must come ≥ 1.5 periods after the reset, else the train was already
+    running and the pairing is refused.
 
     Raises:
         CalibrationError: too few edges or frames, the train already running at the reset, or
@@ -105,7 +250,7 @@ def davis_clock(
         )
         raise CalibrationError(msg)
     period = float(np.median(np.diff(edges)))
-    if edges[0] < 1.5 * period:
+    if check_first_edge and edges[0] < 1.5 * period:
         msg = (
             f"cannot map {pulses.device} by pulses: its first edge comes {edges[0] / 1e6:.1f} ms "
             f"after its timestamp reset (< 1.5 periods of {period / 1e6:.1f} ms), so the pulse "
@@ -113,7 +258,9 @@ def davis_clock(
             "DAVIS (timestamp reset) before the D415 master streams"
         )
         raise CalibrationError(msg)
-    prior = int(master_first_ns - pulses.frame_delay_ns - int(edges[0]))
+    prior = int(master_first_ns - pulses.frame_delay_ns - int(edges[0])) + round(
+        period_shift * period
+    )
     return clock_from_pulses(
         pulses.device,
         edges,

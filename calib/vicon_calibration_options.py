@@ -170,6 +170,12 @@ class CalibrationOptions:
             value (:data:`SLAVE_TRIGGER_DELAY_US`: 100 µs with ``exposure-start``, 770 µs with
             ``readout-start``). Undocumented for the D415 (realsense-d415.md §2.2): measure
             it (LED flash test) for a real rig.
+        measure_pulse_phase: With the Vicon sync channel, fit the master's clock under both
+            conventions and keep the one the video clock agrees with (they differ by one whole
+            exposure; the video clock is good to a fraction of it); when the video cannot tell
+            (its clock off by a quarter exposure or more), ``d415_pulse_at`` stays. False:
+            always ``d415_pulse_at``. The slave trigger delay is never measured (a video clock
+            is ≈ 0.1–0.5 ms good, the delay's range a few hundred µs): it stays an assumption.
     """
 
     head_window_s: float = 2.2
@@ -191,6 +197,7 @@ class CalibrationOptions:
     sync_latency_us: float = 2.0
     d415_pulse_at: D415PulseAt = "exposure-start"
     slave_trigger_delay_us: float | None = None
+    measure_pulse_phase: bool = True
 
     def __post_init__(self) -> None:
         check_positive(self.head_window_s, name="head_window_s")

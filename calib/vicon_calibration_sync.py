@@ -26,7 +26,11 @@ from mocaprig.acquire.recording import Recording
 from mocaprig.calib.calibration import ClockMapping
 from mocaprig.calib.sync_edges import SyncEdges
 from mocaprig.calib.vicon_calibration_frames import CalibCamera
-from mocaprig.calib.vicon_calibration_options import CalibrationOptions
+from mocaprig.calib.vicon_calibration_options import (
+    CalibrationOptions,
+    D415PulseAt,
+    D415PulseTiming,
+)
 from mocaprig.calib.vicon_calibration_pooled_clock import Tie, through_tie
 from mocaprig.errors import CalibrationError, ValidationError
 
@@ -39,7 +43,12 @@ I64 = npt.NDArray[np.int64]
 
 @dataclass(frozen=True, slots=True)
 class SyncInputs:
-    """The Vicon sync channel's edges and the D415 master they come from (or why not)."""
+    """The Vicon sync channel's edges and the D415 master they come from (or why not).
+
+    ``frame_delay_ns`` and ``delays_ns`` follow the assumed pulse timing; ``master_exposure_ns``
+    and ``exposures_ns`` (every other camera's exposure) let :func:`sync_clocks` try the other
+    convention too (None / empty: it cannot).
+    """
 
     edges: SyncEdges | None
     master: str | None = None
@@ -47,6 +56,8 @@ class SyncInputs:
     frame_delay_ns: int = 0
     delays_ns: Mapping[str, float] = field(default_factory=dict)
     note: str = ""
+    master_exposure_ns: float | None = None
+    exposures_ns: Mapping[str, float] = field(default_factory=dict)
 
 
 def sync_channel_edges(vicon_path: Path, opt: CalibrationOptions) -> tuple[SyncEdges | None, str]:
@@ -78,7 +89,8 @@ def sync_channel_edges(vicon_path: Path, opt: CalibrationOptions) -> tuple[SyncE
         )
     name = analogs.labels[analogs.index(label)]
     try:
-        return find_sync_edges(analog_times_ns(analogs), values, channel=name), ""
+        edges = find_sync_edges(analog_times_ns(analogs), values, channel=name, edge_model="fit")
+        return edges, ""
     except CalibrationError as err:
         return None, f"clock: {err}; {fallback}"
 
@@ -124,22 +136,26 @@ def sync_channel_inputs(
             note=f"clock: {master.name}'s metadata has no options.exposure_us; {fallback}",
         )
     timing = opt.pulse_timing
-    delays = {}
-    for c in cams:
-        if c is master:
-            continue
-        delays[c.name] = timing.slave_delay_ns(exp_m, exposure_ns(c) or exp_m)
+    exposures = {c.name: exposure_ns(c) or exp_m for c in cams if c is not master}
     return SyncInputs(
         edges,
         master.name,
         np.unique(np.asarray(frames_ns[master.name], dtype=np.int64)),
         timing.master_frame_delay_ns(exp_m),
-        delays,
+        {c: timing.slave_delay_ns(exp_m, e) for c, e in exposures.items()},
+        master_exposure_ns=exp_m,
+        exposures_ns=exposures,
     )
 
 
 #: Whole edge periods tried either side of a sync-channel mapping (see :func:`sync_clocks`).
 _SYNC_PERIOD_SHIFTS: Final = 3
+
+
+def _disagreement_ns(a: ClockMapping, b: ClockMapping) -> float:
+    """|a − b| (ns) of two mappings of one device at ``a``'s anchor."""
+    t = np.array([a.anchor_ns], dtype=np.int64)
+    return abs(float(a.to_reference_ns(t)[0] - b.to_reference_ns(t)[0]))
 
 
 def sync_clocks(
@@ -148,6 +164,7 @@ def sync_clocks(
     ties: Mapping[str, Tie],
     opt: CalibrationOptions,
     score: Callable[[str, ClockMapping], float] | None = None,
+    timing_out: list[D415PulseTiming] | None = None,
 ) -> tuple[dict[str, ClockMapping], list[str]]:
     """The D415 clocks from the sync channel: the master's by its edges (the video mapping as
     the pairing prior), every camera tied to the pool's pivot (``ties``, from
@@ -160,7 +177,13 @@ def sync_clocks(
     session the master's pooled video clock was 41 ms off), or a tie's counter shift is one
     frame off, the mapping is a whole period out. So each camera's mapping is moved by the
     number of edge periods (±:data:`_SYNC_PERIOD_SHIFTS`) whose ``score`` (the reprojection cost
-    of its frames) is lowest; no move on a tie."""
+    of its frames) is lowest; no move on a tie.
+
+    Where the master's pulse falls (its exposure start or its readout start) moves its sync
+    clock by one whole exposure, which the video clock resolves: with
+    ``opt.measure_pulse_phase`` both conventions are fitted and the one whose clock agrees with
+    the video is kept when the other disagrees by half an exposure more; otherwise the assumed
+    one stays and a note says so. The convention used is appended to ``timing_out``."""
     from mocaprig.calib.sync_edges import clock_from_sync_edges
 
     out = dict(mappings)
@@ -170,9 +193,9 @@ def sync_clocks(
     period = float(np.median(np.diff(np.sort(edges.t_ns)))) if edges.count > 1 else 0.0
     moved: list[str] = []
 
-    def best_period(name: str, mapping: ClockMapping) -> ClockMapping:
+    def best_period(name: str, mapping: ClockMapping) -> tuple[ClockMapping, int]:
         if score is None or not period > 0:
-            return mapping
+            return mapping, 0
         cands = [
             dataclasses.replace(mapping, offset_ns=mapping.offset_ns + round(k * period))
             for k in range(-_SYNC_PERIOD_SHIFTS, _SYNC_PERIOD_SHIFTS + 1)
@@ -180,25 +203,80 @@ def sync_clocks(
         costs = [score(name, c) for c in cands]
         k = int(np.argmin(costs))
         if costs[k] < 0.99 * costs[_SYNC_PERIOD_SHIFTS]:
-            shift = k - _SYNC_PERIOD_SHIFTS
+            return cands[k], k - _SYNC_PERIOD_SHIFTS
+        return mapping, 0
+
+    def note_move(name: str, shift: int) -> None:
+        if shift:
             moved.append(f"{name} {shift:+d}")
             _log.info("%s: sync clock moved by %+d edge periods (reprojection cost)", name, shift)
-            return cands[k]
-        return mapping
 
-    try:
-        mmap = clock_from_sync_edges(
-            m,
-            edges,
-            sync.master_frames_ns,
-            prior=mappings[m],
-            frame_delay_ns=sync.frame_delay_ns,
-            edge_delay_ns=round(opt.sync_latency_us * 1e3),
+    assumed = opt.pulse_timing
+    timings = [assumed]
+    if opt.measure_pulse_phase and sync.master_exposure_ns is not None:
+        other: D415PulseAt = (
+            "readout-start" if assumed.pulse_at == "exposure-start" else "exposure-start"
         )
-    except CalibrationError as err:
-        _log.warning("%s", err)
-        return out, [f"clock: {err}; the D415 clocks come from the video"]
-    mmap = best_period(m, mmap)
+        timings.append(D415PulseTiming.preset(other))
+    fits: list[tuple[D415PulseTiming, ClockMapping, float, int]] = []
+    failure: CalibrationError | None = None
+    for timing in timings:
+        delay = (
+            sync.frame_delay_ns
+            if sync.master_exposure_ns is None
+            else timing.master_frame_delay_ns(sync.master_exposure_ns)
+        )
+        try:
+            fit = clock_from_sync_edges(
+                m,
+                edges,
+                sync.master_frames_ns,
+                prior=mappings[m],
+                frame_delay_ns=delay,
+                edge_delay_ns=round(opt.sync_latency_us * 1e3),
+            )
+        except CalibrationError as err:
+            failure = failure or err
+            continue
+        fit, shift = best_period(m, fit)
+        fits.append((timing, fit, _disagreement_ns(fit, mappings[m]), shift))
+    if not fits:
+        _log.warning("%s", failure)
+        return out, [f"clock: {failure}; the D415 clocks come from the video"]
+    phase_note = ""
+    chosen = next((f for f in fits if f[0] is assumed), fits[0])
+    if len(timings) == 2 and sync.master_exposure_ns is not None:
+        ranked = sorted(fits, key=lambda f: f[2])
+        margin = 0.5 * sync.master_exposure_ns
+        if len(ranked) == 2 and ranked[1][2] - ranked[0][2] > margin:
+            chosen = ranked[0]
+            phase_note = (
+                f"clock: pulse phase measured: {chosen[0].describe()} (the sync clock agrees "
+                f"with the video within {ranked[0][2] / 1e3:.0f} µs, the other convention "
+                f"{ranked[1][2] / 1e3:.0f} µs off); the slave delay is that convention's "
+                "published value, not measured"
+            )
+        elif len(ranked) == 1:
+            phase_note = (
+                f"clock: pulse phase: only {ranked[0][0].describe()} pairs the edges with the "
+                "frames; kept, not confirmed by the video"
+            )
+            chosen = ranked[0]
+        else:
+            phase_note = (
+                "clock: pulse phase not resolved by the video (the two conventions' sync clocks "
+                f"are {ranked[0][2] / 1e3:.0f} and {ranked[1][2] / 1e3:.0f} µs from it, less "
+                f"than half an exposure apart): {assumed.describe()} assumed"
+            )
+            chosen = next((f for f in fits if f[0] is assumed), ranked[0])
+    timing, mmap, _, shift = chosen
+    note_move(m, shift)
+    if timing_out is not None:
+        timing_out.append(timing)
+    delays = dict(sync.delays_ns)
+    if sync.master_exposure_ns is not None and sync.exposures_ns:
+        exp_m = sync.master_exposure_ns
+        delays = {c: timing.slave_delay_ns(exp_m, e) for c, e in sync.exposures_ns.items()}
     out[m] = mmap
     done = [m]
     tm = ties.get(m)
@@ -220,7 +298,7 @@ def sync_clocks(
                 c,
                 tie,
                 pivot_map,
-                delay_ns=sync.delays_ns.get(c, 0.0),
+                delay_ns=delays.get(c, 0.0),
                 method=f"{mmap.method} via {m} (frame tie)",
             )
             sigma = math.hypot(
@@ -228,9 +306,11 @@ def sync_clocks(
                 tie.rms_ns / math.sqrt(max(tie.pairs, 1)),
                 tm.rms_ns / math.sqrt(max(tm.pairs, 1)),
             )
-            out[c] = best_period(c, dataclasses.replace(mc, offset_sigma_ns=sigma))
+            out[c], c_shift = best_period(c, dataclasses.replace(mc, offset_sigma_ns=sigma))
+            note_move(c, c_shift)
             done.append(c)
-    notes = [
+    notes = [phase_note] if phase_note else []
+    notes += [
         f"clock: {m} from the Vicon sync channel {edges.channel!r} ({edges.count} edges, "
         f"τ {edges.tau_ns / 1e3:.0f} µs; ±{mmap.offset_sigma_ns / 1e3:.1f} µs, "
         f"±{mmap.drift_sigma_ppm:.3f} ppm)"

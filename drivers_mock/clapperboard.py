@@ -17,6 +17,12 @@ opening over ``opening_s`` (quintic ease, 0 → θmax of 30–40°), holding ope
 closing in ``closing_s`` (60–120 ms) under constant angular acceleration from rest,
 ``θ = θmax·(1 − s²)`` with ``s`` going 0 → 1, so the arm is fastest at contact
 (``2·θmax/closing_s`` ≈ 10–20 rad/s). It then stays closed until the next clap opens.
+
+Those are the nominal world's values. A random world (:mod:`mocaprig.drivers_mock.world`) widens
+the closing to 30–300 ms, changes the law to ``θ = θmax·(1 − s^p)`` (``closing_power`` p: 2 is
+constant angular acceleration; larger p slams harder at the end) and may add a bounce: after
+contact the arm reopens by ``bounce_rad`` along a half sine over ``bounce_s`` and closes again.
+The clap instant stays the first contact.
 """
 
 from __future__ import annotations
@@ -55,6 +61,10 @@ class Clapperboard:
         arm_length_m: Hinge-to-marker distance along an arm (m).
         arm_thickness_m: Thickness of one arm (m); the board is twice that when closed.
         marker_radius_m: Marker radius (m).
+        closing_power: Exponent ``p`` of the closing law ``θmax·(1 − s^p)`` (2: constant
+            angular acceleration from rest).
+        bounce_rad: Reopening after contact (rad); 0: the arm stays closed.
+        bounce_s: Duration of that bounce (s).
 
     Raises:
         ValidationError: inconsistent lengths, unordered or overlapping claps, bad geometry.
@@ -70,6 +80,9 @@ class Clapperboard:
     arm_length_m: float = 0.30
     arm_thickness_m: float = 0.010
     marker_radius_m: float = 0.007
+    closing_power: float = 2.0
+    bounce_rad: float = 0.0
+    bounce_s: float = 0.0
 
     def __post_init__(self) -> None:
         hinge = np.array(check_finite(check_shape(self.hinge_m, [3], name="hinge_m")), float)
@@ -88,6 +101,12 @@ class Clapperboard:
             raise ValidationError(msg)
         if any(c <= 0 for c in self.closing_s) or self.opening_s <= 0 or self.hold_s < 0:
             msg = "Clapperboard: closing_s and opening_s must be > 0 and hold_s >= 0"
+            raise ValidationError(msg)
+        if not (self.closing_power >= 1.0 and 0.0 <= self.bounce_rad < np.pi / 4):
+            msg = "Clapperboard: closing_power must be >= 1 and bounce_rad in [0, π/4)"
+            raise ValidationError(msg)
+        if self.bounce_s < 0 or (self.bounce_rad > 0 and self.bounce_s <= 0):
+            msg = "Clapperboard: bounce_s must be >= 0, and > 0 with a bounce"
             raise ValidationError(msg)
         if min(self.arm_length_m, self.arm_thickness_m, self.marker_radius_m) <= 0:
             msg = "Clapperboard: arm length, arm thickness and marker radius must be > 0"
@@ -127,10 +146,16 @@ class Clapperboard:
             x = np.clip(dt / self.opening_s, 0.0, 1.0)
             opening = amax * x * x * x * (x * (6.0 * x - 15.0) + 10.0)
             s = np.clip((t - t_close).astype(np.float64) * 1e-9 / self.closing_s[k], 0.0, 1.0)
-            closing = amax * (1.0 - s * s)
+            # s * s keeps the nominal law's floating-point values exactly.
+            law = s * s if self.closing_power == 2.0 else s**self.closing_power
+            closing = amax * (1.0 - law)
             theta = np.where(t < t_hold, opening, np.where(t < t_close, amax, closing))
             theta = np.where((t >= t_open) & (t < tc), theta, 0.0)
             out = np.maximum(out, theta)
+            if self.bounce_rad > 0:
+                b = (t - tc).astype(np.float64) * 1e-9 / self.bounce_s
+                bounce = np.where((b > 0) & (b < 1), self.bounce_rad * np.sin(np.pi * b), 0.0)
+                out = np.maximum(out, bounce)
         return out
 
     def markers_m(self, t_ns: npt.ArrayLike) -> F64:
@@ -158,13 +183,23 @@ class Clapperboard:
             "arm_length_m": self.arm_length_m,
             "arm_thickness_m": self.arm_thickness_m,
             "marker_radius_m": self.marker_radius_m,
+            "closing_power": self.closing_power,
+            "bounce_rad": self.bounce_rad,
+            "bounce_s": self.bounce_s,
             "contact_distance_m": self.contact_distance_m,
             "marker_names": list(CLAPPER_MARKERS),
         }
 
 
 def make_clapperboard(
-    rng: np.random.Generator, *, seconds: float, static_start_s: float
+    rng: np.random.Generator,
+    *,
+    seconds: float,
+    static_start_s: float,
+    closing_s: tuple[float, float] = (0.06, 0.12),
+    closing_power: float = 2.0,
+    bounce_rad: float = 0.0,
+    bounce_s: float = 0.0,
 ) -> Clapperboard:
     """The scenario's clapperboard: in front of the actor, two claps.
 
@@ -176,6 +211,10 @@ def make_clapperboard(
         rng: The seeded generator (consumed).
         seconds: Session length (s), at least 3 s.
         static_start_s: Length of the static start (s).
+        closing_s: Range (s) each clap's closing duration is drawn from.
+        closing_power: The closing law's exponent (:class:`Clapperboard`).
+        bounce_rad: Reopening after contact (rad).
+        bounce_s: Duration of the bounce (s).
 
     Raises:
         ValidationError: the session is too short for two claps after the static start.
@@ -195,5 +234,8 @@ def make_clapperboard(
         yaw_rad=float(np.radians(rng.uniform(-10.0, 10.0))),
         clap_times_ns=(round(first_s * 1e9), round(last_s * 1e9)),
         open_angles_rad=tuple(float(np.radians(rng.uniform(30.0, 40.0))) for _ in range(2)),
-        closing_s=tuple(float(rng.uniform(0.06, 0.12)) for _ in range(2)),
+        closing_s=tuple(float(rng.uniform(*closing_s)) for _ in range(2)),
+        closing_power=closing_power,
+        bounce_rad=bounce_rad,
+        bounce_s=bounce_s,
     )

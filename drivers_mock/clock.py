@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from mocaprig.errors import ValidationError
 
-__all__ = ["DeviceClock", "d415_clock", "davis_clock", "vicon_clock"]
+__all__ = ["DeviceClock", "d415_clock", "davis_clock", "hash_normal", "vicon_clock"]
 
 I64 = npt.NDArray[np.int64]
 
@@ -56,6 +56,12 @@ def _hash_normal(seed: int, t_ns: I64) -> npt.NDArray[np.float64]:
     u2 = (h2 >> np.uint64(11)).astype(np.float64) / 2.0**53
     out: npt.NDArray[np.float64] = np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
     return out
+
+
+def hash_normal(seed: int, keys: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """Standard normal values, a deterministic function of ``(seed, key)`` for integer keys
+    (e.g. session ns): the same instant always gets the same draw, whoever asks."""
+    return _hash_normal(seed, _as_int64(keys, "keys"))
 
 
 def _as_int64(x: npt.ArrayLike, name: str) -> I64:

@@ -761,6 +761,12 @@ class MockD415:
     def _lost(self, cap: _Capture) -> str | None:
         """Why a capture is lost (drops, bandwidth), or ``None``."""
         rig = self.rig
+        # A hidden world parameter: the master loses its first captures (its pulses still go
+        # out), so its first recorded frame is not its first pulse.
+        lost_first = rig.scenario.world_params.master_dropped_frames
+        master = self._sync is SyncMode.MASTER
+        if lost_first and master and self._runs == 1 and self._k <= lost_first:
+            return "dropped"
         for f in rig.faults_for(self, "drops"):
             if f.at_s is not None and cap.t_start < f.at_s * 1e9:
                 continue

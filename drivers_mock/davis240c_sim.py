@@ -95,7 +95,7 @@ import numpy as np
 import numpy.typing as npt
 
 from mocaprig.acquire.events import make_events
-from mocaprig.drivers_mock.clock import _hash_normal
+from mocaprig.drivers_mock.clock import _hash_normal, hash_normal
 from mocaprig.drivers_mock.davis240c_render import (
     DAVIS_SHAPE,
     DavisLook,
@@ -829,6 +829,16 @@ class DavisSimulator:
         )
         return out
 
+    def _stamp_ext(self, edges_ns: I64) -> I64:
+        """Device µs stamps of external-input edges (session ns): floored, plus the world's
+        trigger stamping jitter (``WorldParams.davis_trigger_jitter_us``, 0 in the nominal
+        world), a function of the edge instant so any window gives the same stamp."""
+        t = self.device_us(edges_ns)
+        sigma = self.scenario.world_params.davis_trigger_jitter_us
+        if sigma > 0:
+            t = t + sigma * hash_normal(self._jitter_seed ^ 0x7716, edges_ns)
+        return np.floor(t).astype(np.int64)
+
     def _ext_input(self, t0: int, t1: int) -> npt.NDArray[np.void]:
         if self._sync_source is not None:
             return self._ext_input_from(self._sync_source, t0, t1)
@@ -843,7 +853,7 @@ class DavisSimulator:
         rise_m = np.round(k * period_ns).astype(np.int64)
         edges_m = np.stack([rise_m, rise_m + width_ns], axis=1).ravel()
         kinds = np.tile([int(ExtInputEdge.RISING), int(ExtInputEdge.FALLING)], k.size)
-        u = np.floor(self.device_us(clock.session_ns(edges_m, unit_ns=1))).astype(np.int64)
+        u = self._stamp_ext(clock.session_ns(edges_m, unit_ns=1))
         sel = (u >= t0) & (u < t1)
         out = np.empty(int(sel.sum()), dtype=EXT_INPUT_DTYPE)
         out["t"] = u[sel]
@@ -864,7 +874,7 @@ class DavisSimulator:
         r = np.array(rises, dtype=np.int64)
         edges = np.stack([r, r + width_ns], axis=1).ravel()
         kinds = np.tile([int(ExtInputEdge.RISING), int(ExtInputEdge.FALLING)], r.size)
-        u = np.floor(self.device_us(edges)).astype(np.int64)
+        u = self._stamp_ext(edges)
         sel = (u >= t0) & (u < t1)
         out = np.empty(int(sel.sum()), dtype=EXT_INPUT_DTYPE)
         out["t"] = u[sel]

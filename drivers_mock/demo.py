@@ -7,17 +7,20 @@ on the recording, the D415 sync check (:class:`mocaprig.acquire.d415_sync.SyncCh
 recorded frame timing, the DAVIS decode statistics and the pairing of the DAVIS trigger pulses
 with the D415 master's frames -> read the Vicon exports back through the product reader
 (:mod:`mocaprig.calib.vicon`) -> compare with the truth -> calibrate the D415s and the DAVIS clock
-against the Vicon trial (:mod:`calib.vicon_calibration`) and score the calibration against the
-truth -> DeMoCap figures of the committed ``lite`` checkpoint on held-out simulated takes
-(:func:`process.democap.demo_figures`) -> DeMoCap replay of the recording with that calibration
-(:func:`process.democap.run_replay`: ``results.mcap``, ``results.c3d``, ``results.csv``; every
-:data:`REPLAY_EVERY`-th rig instant) scored against the truth -> a summary figure and report.
+against the Vicon trial (:mod:`calib.vicon_calibration`), write its report
+(:data:`CALIBRATION_REPORT`: figures beside the JSON, :mod:`calib.report`) and score the
+calibration against the truth -> DeMoCap figures of the committed ``lite`` checkpoint on
+held-out simulated takes (:func:`process.democap.demo_figures`) -> DeMoCap replay of the
+recording with that calibration (:func:`process.democap.run_replay`: ``results.mcap``,
+``results.c3d``, ``results.csv``; every :data:`REPLAY_EVERY`-th rig instant) scored against
+the truth, with the reconstructed skeleton against the truth (:data:`SKELETON_FIGURE`) -> a
+summary figure and report.
 -> EventCap on a short simulated DAVIS take with truth, scored with the paper's baselines
 (:func:`process.eventcap.evaluate.evaluate_take`; synthetic detections, labelled so) -> with
 ``davis_dvs``, ``eventcap run`` on the demo's own recording (synthetic detections and the
 simulator's true DAVIS calibration standing in for ``calibrate board``), scored against the
 truth. Stages not built yet are listed in the report as pending, never faked; a stage that
-fails is reported as failed and the command exits 1.
+fails is reported as failed and the command exits 1. ``progress`` reports every stage.
 """
 
 from __future__ import annotations
@@ -41,11 +44,13 @@ from mocaprig.drivers_mock.truth import Truth, read_truth
 from mocaprig.errors import MocaprigError, RecordingError
 from mocaprig.json_values import to_jsonable
 
-__all__ = ["REPLAY_EVERY", "DemoReport", "run_demo"]
+__all__ = ["CALIBRATION_REPORT", "REPLAY_EVERY", "SKELETON_FIGURE", "DemoReport", "run_demo"]
 
 _log = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
+#: A stage-aware progress callback ``(stage, done, total)`` (as ``process.eventcap.run``'s).
+StageReport = Callable[[str, int, int], None]
 
 #: Stages of the main job not built yet; the report lists them as pending.
 _PENDING_STAGES: tuple[tuple[str, str], ...] = ()
@@ -56,6 +61,15 @@ EVENTCAP_TAKE: dict[str, Any] = {"scenario": "karate", "seconds": 3.0, "start_s"
 EVENTCAP_BATCHES = 6
 #: Where on the DAVIS timeline (s) ``eventcap run`` starts on the demo's own recording.
 EVENTCAP_RUN_START_S = 1.6
+
+#: The demo's figure of the replayed DeMoCap skeleton against the truth (in its folder).
+SKELETON_FIGURE = "democap_skeleton.png"
+#: The demo's calibration report folder (``calibrate vicon --report``; ``index.html`` in it).
+CALIBRATION_REPORT = "calibration_report"
+
+#: The words the demo's progress shows for the EventCap stages' steps.
+_EVENTCAP_STAGES = {"eventcap": "batches", "linear": "*_linear baseline", "all": "*_all baseline"}
+_EVENTCAP_RUN_STAGES = {"index": "indexing", "batches": "batches", "write": "writing"}
 
 #: The demo replays every n-th rig instant of its recording (10 Hz of the 30 Hz D415s) to keep
 #: its extra time small.
@@ -77,9 +91,14 @@ _IN_DISTRIBUTION_RECORDING = (
 
 
 def _replay_figures(
-    sim: SimulationResult, out: Path, calib_path: Path, truth: Truth
+    sim: SimulationResult,
+    out: Path,
+    calib_path: Path,
+    truth: Truth,
+    progress: Progress | None = None,
 ) -> dict[str, Any]:
-    """DeMoCap replay of the demo's recording with its calibration, scored against the truth."""
+    """DeMoCap replay of the demo's recording with its calibration, scored against the truth;
+    writes :data:`SKELETON_FIGURE` (the reconstructed skeleton against the truth)."""
     from mocaprig.drivers_mock.truth import democap_truth_at
     from mocaprig.process.democap import run_replay, score_replay
 
@@ -89,11 +108,16 @@ def _replay_figures(
         out=out / "results.mcap",
         every=REPLAY_EVERY,
         overwrite=True,
+        progress=progress,
     )
     true_m, true_j = democap_truth_at(truth, result.t_ref_ns, clock=result.reference_clock)
     m = score_replay(result, true_j, true_m)
     s = result.summary()
+    figure = _skeleton_figure(
+        out / SKELETON_FIGURE, result.t_ref_ns, result.joints_m, true_j, mpjpe_mm=m.mpjpe_mm
+    )
     return {
+        "skeleton_figure": str(figure),
         "results_mcap": s["outputs"]["mcap"],
         "results_c3d": s["outputs"]["c3d"],
         "results_csv": s["outputs"]["csv"],
@@ -116,7 +140,12 @@ def _replay_figures(
 
 
 def _live_figures(
-    sim: SimulationResult, out: Path, calib_path: Path, truth: Truth, cameras: int
+    sim: SimulationResult,
+    out: Path,
+    calib_path: Path,
+    truth: Truth,
+    cameras: int,
+    progress: Progress | None = None,
 ) -> dict[str, Any]:
     """``democap live`` on the mock rig of the demo's world for :data:`LIVE_SECONDS`: the
     cameras' frame sets -> instants -> the live pipeline -> ``live.mcap``, scored like the
@@ -129,6 +158,12 @@ def _live_figures(
     from mocaprig.process.metrics import pose_metrics
 
     results: list[tuple[Any, Any]] = []
+
+    def on_result(res: Any, inst: Any) -> None:
+        results.append((res, inst))
+        if progress is not None:
+            progress(len(results), 0)  # how many instants a live run gives is not known
+
     path = out / "live.mcap"
     path.unlink(missing_ok=True)  # the demo owns its folder (--overwrite was checked)
     cams = open_cameras(
@@ -140,11 +175,13 @@ def _live_figures(
             read_calibration(calib_path),
             seconds=LIVE_SECONDS,
             out=path,
-            on_result=lambda res, inst: results.append((res, inst)),
+            on_result=on_result,
         )
     finally:
         for cam in cams:
             cam.close()
+    if progress is not None:
+        progress(len(results), len(results))
     ok = [(r, i) for r, i in results if r.prediction is not None]
     figures = summary.as_dict()
     if ok:
@@ -163,21 +200,31 @@ def _live_figures(
     return figures
 
 
-def _eventcap_figures(seed: int) -> dict[str, Any]:
+def _eventcap_figures(seed: int, progress: StageReport | None = None) -> dict[str, Any]:
     from mocaprig.drivers_mock.eventcap_take import simulated_take_with_truth
     from mocaprig.process.eventcap.evaluate import evaluate_take
 
-    take = simulated_take_with_truth(seed=seed, **EVENTCAP_TAKE)
+    def simulated(done_us: int, total_us: int) -> None:
+        if progress is not None:
+            progress("simulate DAVIS (ms)", done_us // 1000, total_us // 1000)
+
+    take = simulated_take_with_truth(seed=seed, progress=simulated, **EVENTCAP_TAKE)
+    if progress is not None:
+        # The batches start now; their first report comes only after the first batch.
+        progress("eventcap", 0, EVENTCAP_BATCHES)
     result = evaluate_take(
         take,
         protocol="simulated take (procedural karate excerpt), realistic DAVIS240C",
         seed=seed,
         max_batches=EVENTCAP_BATCHES,
+        progress=progress,
     )
     return result.to_json()
 
 
-def _eventcap_run_figures(session: Path, out: Path, seed: int) -> dict[str, Any]:
+def _eventcap_run_figures(
+    session: Path, out: Path, seed: int, progress: StageReport | None = None
+) -> dict[str, Any]:
     from mocaprig.drivers_mock.eventcap_session import read_session_truth, write_session_inputs
     from mocaprig.process.eventcap.run import run_eventcap
 
@@ -188,6 +235,15 @@ def _eventcap_run_figures(session: Path, out: Path, seed: int) -> dict[str, Any]
         seed=seed,
         overwrite=True,
     )
+
+    def report(stage: str, done: int, total: int) -> None:
+        if progress is None:
+            return
+        progress(stage, done, total)
+        if stage == "index" and done >= total:
+            # The batches start now; their first report comes only after the first batch.
+            progress("batches", 0, EVENTCAP_BATCHES)
+
     result = run_eventcap(
         session / "session.mcap",
         cal,
@@ -197,10 +253,11 @@ def _eventcap_run_figures(session: Path, out: Path, seed: int) -> dict[str, Any]
         batches=EVENTCAP_BATCHES,
         start_s=EVENTCAP_RUN_START_S,
         overwrite=True,
+        progress=report,
     )
     summary = result.summary()
     truth = read_session_truth(session).keypoints_at(result.t_davis_us)
-    err_mm = 1e3 * np.linalg.norm(result.keypoints_m[:, :15] - truth[:, :15], axis=-1)
+    err_mm = 1e3 * np.linalg.norm(result.read_keypoints_m()[:, :15] - truth[:, :15], axis=-1)
     return {
         **summary,
         "protocol": "the demo's simulated recording; synthetic detections; the simulator's "
@@ -209,14 +266,28 @@ def _eventcap_run_figures(session: Path, out: Path, seed: int) -> dict[str, Any]
     }
 
 
-def _calibration_figures(sim: SimulationResult, out: Path) -> dict[str, Any]:
-    """Calibrate the recorded D415s (and the DAVIS clock) against the Vicon trial; score it."""
+def _calibration_figures(
+    sim: SimulationResult,
+    out: Path,
+    traj: MarkerTrajectories,
+    progress: Callable[[str], Progress | None],
+) -> dict[str, Any]:
+    """Calibrate the recorded D415s (and the DAVIS clock) against the Vicon trial, write its
+    report (:data:`CALIBRATION_REPORT`), and score it."""
     from mocaprig.calib.calibration import write_calibration
+    from mocaprig.calib.report import write_report
     from mocaprig.calib.vicon_calibration import calibrate_vicon, evaluate_calibration
 
     session = sim.out_dir / "session.mcap"
-    result = calibrate_vicon(session, sim.c3d_path)
+    result = calibrate_vicon(session, sim.c3d_path, progress=progress("calibrate"))
     calib_path = write_calibration(result.calibration, out / "calib.toml", overwrite=True)
+    report = write_report(
+        result,
+        out / CALIBRATION_REPORT,
+        overwrite=True,
+        trajectories=traj,
+        progress=progress("calibration report"),
+    )
     ev = evaluate_calibration(result.calibration, sim.out_dir)
     per_device = ev.as_dict()["devices"]
     cams = [d for d in ev.devices if DeviceId.parse(d.device).kind == "d415"]
@@ -228,6 +299,8 @@ def _calibration_figures(sim: SimulationResult, out: Path) -> dict[str, Any]:
 
     return {
         "calibration_file": str(calib_path),
+        "report": str(report.index),
+        "report_figures": [str(p) for p in report.figures],
         "cameras": len(result.calibration.cameras),
         "clocks": len(result.calibration.clocks),
         "notes": list(result.notes),
@@ -255,6 +328,10 @@ class DemoReport:
         report_path: ``report.json`` (this report).
         figures: Measured figures (units in the key names).
         stages: Each stage of the main job with ``"done"`` or ``"pending: <why>"``.
+        skeleton_figure_path: The replayed DeMoCap skeleton against the truth (PNG); None when
+            the replay did not run.
+        calibration_report_path: The calibration report's ``index.html``; None when the
+            calibration failed.
     """
 
     out_dir: Path
@@ -263,6 +340,8 @@ class DemoReport:
     report_path: Path
     figures: dict[str, Any] = field(repr=False)
     stages: dict[str, str] = field(repr=False)
+    skeleton_figure_path: Path | None = None
+    calibration_report_path: Path | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready summary (what ``demo --json`` prints)."""
@@ -270,10 +349,16 @@ class DemoReport:
             "out_dir": str(self.out_dir),
             "session_dir": str(self.session_dir),
             "figure": str(self.figure_path),
+            "skeleton_figure": _path_or_none(self.skeleton_figure_path),
+            "calibration_report": _path_or_none(self.calibration_report_path),
             "report": str(self.report_path),
             "stages": dict(self.stages),
             "figures": dict(self.figures),
         }
+
+
+def _path_or_none(path: Path | None) -> str | None:
+    return None if path is None else str(path)
 
 
 def _vicon_vs_truth(traj: MarkerTrajectories, truth: Truth) -> dict[str, float]:
@@ -302,8 +387,9 @@ def _vicon_vs_truth(traj: MarkerTrajectories, truth: Truth) -> dict[str, float]:
     }
 
 
-def _recording_figures(path: Path) -> dict[str, Any]:
-    """``info``, the D415 sync check, DAVIS statistics and trigger pairing of a recording."""
+def _recording_figures(path: Path, progress: Progress | None = None) -> dict[str, Any]:
+    """``info``, the D415 sync check, DAVIS statistics and trigger pairing of a recording
+    (``progress`` over those 3 steps)."""
     from mocaprig.acquire.d415_sync import SyncCheckConfig, SyncChecker
     from mocaprig.acquire.davis240c_decode import SpecialType
     from mocaprig.acquire.depth_camera import SyncMode
@@ -316,7 +402,13 @@ def _recording_figures(path: Path) -> dict[str, Any]:
     )
     from mocaprig.acquire.recording import Recording, info
 
+    def step(done: int) -> None:
+        if progress is not None:
+            progress(done, 3)
+
+    step(0)
     inf = info(path)
+    step(1)
     out: dict[str, Any] = {
         "path": str(path),
         "indexed": inf.indexed,
@@ -347,6 +439,7 @@ def _recording_figures(path: Path) -> dict[str, Any]:
             out["d415_max_phase_error_us"] = max(
                 (c.max_phase_error_us or 0.0 for c in rep.cameras.values()), default=0.0
             )
+        step(2)
         cams = davis_devices(rec)
         if cams:
             davis = RecordedDavis(rec, cams[0])
@@ -358,6 +451,7 @@ def _recording_figures(path: Path) -> dict[str, Any]:
             out["davis_trigger_pulses"] = int(pulses.size)
             out["davis_dvs"] = davis.settings().get("dvs.run")
             out.update(_pair_pulses(pulses, np.asarray(master_sensor_us, np.int64)))
+    step(3)
     return out
 
 
@@ -479,6 +573,85 @@ def _summary_figure(
     fig.savefig(path, dpi=90)
 
 
+def _skeleton_figure(
+    path: Path,
+    t_ref_ns: npt.NDArray[np.int64],
+    pred_joints_m: npt.NDArray[np.float64],
+    true_joints_m: npt.NDArray[np.float64],
+    *,
+    mpjpe_mm: float,
+) -> Path:
+    """The replayed DeMoCap skeleton against the truth: three instants in 3D (early, middle,
+    late), the per-instant joint error over the take and the mean error per joint; the errors
+    are over the scored joints (:data:`process.democap.evaluate.EVAL_JOINTS`), as MPJPE is."""
+    import matplotlib as mpl
+
+    mpl.use("Agg", force=False)  # no display on a capture PC's CI or over ssh
+    from matplotlib.figure import Figure
+
+    from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS
+    from mocaprig.process.democap.evaluate import EVAL_JOINTS
+
+    keep = list(EVAL_JOINTS)
+    err_mm = np.linalg.norm(pred_joints_m - true_joints_m, axis=-1) * 1e3  # (N, 19)
+    per_instant = np.nanmean(err_mm[:, keep], axis=1)
+    t_s = (t_ref_ns - t_ref_ns[0]) * 1e-9
+    n = len(t_ref_ns)
+    fig = Figure(figsize=(14, 9), layout="constrained")
+    grid = fig.add_gridspec(2, 3)
+    bones = [(j, p) for j, p in enumerate(DEMOCAP_PARENTS) if p >= 0]
+    for col, frac in enumerate((1 / 6, 1 / 2, 5 / 6)):
+        k = min(n - 1, int(frac * n))
+        # mplot3d ships no type information: its axes are Any here.
+        ax: Any = fig.add_subplot(grid[0, col], projection="3d")
+        for joints, colour, label in (
+            (true_joints_m[k], "k", "truth"),
+            (pred_joints_m[k], "tab:red", "DeMoCap (replay)"),
+        ):
+            for n_bone, (j, p) in enumerate(bones):
+                seg = joints[[j, p]]
+                ax.plot(
+                    seg[:, 0], seg[:, 1], seg[:, 2], color=colour, lw=2,
+                    label=label if n_bone == 0 else None,
+                )  # fmt: skip
+            ax.scatter(joints[:, 0], joints[:, 1], joints[:, 2], color=colour, s=8)
+        both = np.vstack([true_joints_m[k], pred_joints_m[k]])
+        both = both[np.isfinite(both).all(axis=1)]
+        mid = (both.min(axis=0) + both.max(axis=0)) / 2
+        half = max(float(np.ptp(both, axis=0).max()) / 2, 0.1) * 1.1
+        ax.set_xlim(mid[0] - half, mid[0] + half)
+        ax.set_ylim(mid[1] - half, mid[1] + half)
+        ax.set_zlim(mid[2] - half, mid[2] + half)
+        ax.set_box_aspect((1.0, 1.0, 1.0))
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_zlabel("z (m)")
+        ax.set_title(f"t = {t_s[k]:.2f} s: {per_instant[k]:.1f} mm mean joint error", fontsize=9)
+        if col == 0:
+            ax.legend(loc="upper left", fontsize=8)
+    ax2 = fig.add_subplot(grid[1, :2])
+    ax2.plot(t_s, per_instant, ".-", ms=3, lw=0.8, color="tab:red")
+    ax2.axhline(mpjpe_mm, color="k", ls="--", lw=0.8, label=f"MPJPE {mpjpe_mm:.1f} mm")
+    ax2.set_xlabel("time since the first replayed instant (s)")
+    ax2.set_ylabel("mean joint error (mm)")
+    ax2.set_title("per instant")
+    ax2.legend(fontsize=8)
+    ax3 = fig.add_subplot(grid[1, 2])
+    per_joint = np.nanmean(err_mm[:, keep], axis=0)
+    ax3.barh(range(len(keep)), per_joint, color="tab:red")
+    ax3.set_yticks(range(len(keep)), [DEMOCAP_JOINTS[j] for j in keep], fontsize=8)
+    ax3.invert_yaxis()
+    ax3.set_xlabel("mean error (mm)")
+    ax3.set_title("per joint")
+    fig.suptitle(
+        f"DeMoCap replay of session.mcap against the truth: {n} instants, the demo's "
+        "calibration (in-distribution)",
+        fontsize=10,
+    )
+    fig.savefig(path, dpi=90)
+    return path
+
+
 def run_demo(
     out_dir: str | Path,
     *,
@@ -517,6 +690,26 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
 
+    def stage(label: str) -> Progress | None:
+        return None if progress is None else progress(label)
+
+    def staged(prefix: str, labels: dict[str, str]) -> StageReport | None:
+        """A ``(stage, done, total)`` callback drawing one bar per stage (``labels``: the
+        words shown for a stage's name)."""
+        if progress is None:
+            return None
+        factory = progress
+        bars: dict[str, Progress | None] = {}
+
+        def report(name: str, done: int, total: int) -> None:
+            if name not in bars:
+                bars[name] = factory(f"{prefix} {labels.get(name, name)}")
+            bar = bars[name]
+            if bar is not None:
+                bar(done, total)
+
+        return report
+
     t0 = time.monotonic()
     sim = simulate_session(
         out / "session",
@@ -532,7 +725,7 @@ def run_demo(
     timings["simulate_s"] = time.monotonic() - t0
     timings["record_s"] = sim.recording.elapsed_s if sim.recording is not None else 0.0
     t0 = time.monotonic()
-    rec_figures = _recording_figures(out / "session" / "session.mcap")
+    rec_figures = _recording_figures(out / "session" / "session.mcap", stage("check recording"))
     timings["recording_checks_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
@@ -569,7 +762,7 @@ def run_demo(
     stages = {"simulate": "done", "record": "done", "vicon_io": "done"}
     t0 = time.monotonic()
     try:
-        figures["calibration"] = _calibration_figures(sim, out)
+        figures["calibration"] = _calibration_figures(sim, out, traj, stage)
         stages["calibrate"] = "done"
     except MocaprigError as err:
         # The demo reports a failed stage and goes on; the error says why.
@@ -582,12 +775,18 @@ def run_demo(
     try:
         from mocaprig.process.democap import demo_figures
 
+        # demo_figures reports no progress: the stage's start and end show.
+        bar = stage("democap figures")
+        if bar is not None:
+            bar(0, 1)
         figures["democap"] = {
             **demo_figures(seed=seed),
             "protocol": "in-distribution",
             "holds_out": _IN_DISTRIBUTION,
         }
         stages["democap"] = "done (in-distribution: held-out simulated takes)"
+        if bar is not None:
+            bar(1, 1)
     except MocaprigError as err:
         _log.error("DeMoCap stage failed: %s", err)
         figures["democap"] = {"error": str(err)}
@@ -601,7 +800,9 @@ def run_demo(
         stages["democap_replay"] = "skipped: needs the calibration, whose stage failed"
     else:
         try:
-            figures["democap_replay"] = _replay_figures(sim, out, Path(calib_file), truth)
+            figures["democap_replay"] = _replay_figures(
+                sim, out, Path(calib_file), truth, stage("democap replay")
+            )
             stages["democap_replay"] = "done"
         except MocaprigError as err:
             _log.error("DeMoCap replay stage failed: %s", err)
@@ -615,7 +816,9 @@ def run_demo(
         stages["democap_live"] = "skipped: needs the calibration, whose stage failed"
     else:
         try:
-            figures["democap_live"] = _live_figures(sim, out, Path(calib_file), truth, cameras)
+            figures["democap_live"] = _live_figures(
+                sim, out, Path(calib_file), truth, cameras, stage("democap live")
+            )
             stages["democap_live"] = f"done ({LIVE_SECONDS:g} s of the mock rig)"
         except MocaprigError as err:
             _log.error("DeMoCap live stage failed: %s", err)
@@ -625,7 +828,7 @@ def run_demo(
 
     t0 = time.monotonic()
     try:
-        figures["eventcap"] = _eventcap_figures(seed)
+        figures["eventcap"] = _eventcap_figures(seed, staged("eventcap", _EVENTCAP_STAGES))
         stages["eventcap"] = (
             f"done ({EVENTCAP_BATCHES} batches of a simulated take; synthetic detections)"
         )
@@ -643,7 +846,9 @@ def run_demo(
         )
     else:
         try:
-            figures["eventcap_run"] = _eventcap_run_figures(sim.out_dir, out, seed)
+            figures["eventcap_run"] = _eventcap_run_figures(
+                sim.out_dir, out, seed, staged("eventcap run", _EVENTCAP_RUN_STAGES)
+            )
             stages["eventcap_run"] = f"done ({EVENTCAP_BATCHES} batches of session.mcap)"
         except MocaprigError as err:
             _log.error("EventCap run stage failed: %s", err)
@@ -652,7 +857,14 @@ def run_demo(
     timings["eventcap_run_s"] = time.monotonic() - t0
 
     figure_path = out / "summary.png"
+    bar = stage("summary figure")
+    if bar is not None:
+        bar(0, 1)
     _summary_figure(figure_path, sim, truth, traj, rec_figures)
+    if bar is not None:
+        bar(1, 1)
+    skeleton = figures["democap_replay"].get("skeleton_figure")
+    cal_report = figures["calibration"].get("report")
 
     stages.update({name: f"pending: {why}" for name, why in _PENDING_STAGES})
     report_path = out / "report.json"
@@ -663,6 +875,8 @@ def run_demo(
         report_path=report_path,
         figures=figures,
         stages=stages,
+        skeleton_figure_path=None if skeleton is None else Path(skeleton),
+        calibration_report_path=None if cal_report is None else Path(cal_report),
     )
     payload = {"mocaprig_version": __version__, **report.to_dict()}
     report_path.write_text(json.dumps(to_jsonable(payload), indent=2) + "\n", encoding="utf-8")

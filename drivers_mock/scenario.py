@@ -29,6 +29,7 @@ from mocaprig.drivers_mock.clapperboard import Clapperboard, make_clapperboard
 from mocaprig.drivers_mock.clock import DeviceClock, d415_clock, davis_clock, vicon_clock
 from mocaprig.drivers_mock.noise import NoiseSettings
 from mocaprig.drivers_mock.rig import D415Timing, PinholeCamera, PulseAt, Rig, default_rig
+from mocaprig.drivers_mock.world import WORLD_KINDS, WorldKind, WorldParams
 from mocaprig.errors import ValidationError
 from mocaprig.validation import check_positive
 
@@ -190,6 +191,8 @@ class Scenario:
         noise: Noise settings.
         vicon_start_ns: Session time the Vicon capture starts.
         vicon_end_ns: Session time the Vicon capture stops.
+        world_params: The hidden world parameters (:class:`WorldParams`; nominal by default),
+            ground truth the calibration is never told.
     """
 
     name: str
@@ -206,6 +209,7 @@ class Scenario:
     noise: NoiseSettings = field(repr=False)
     vicon_start_ns: int = 0
     vicon_end_ns: int = 0
+    world_params: WorldParams = field(default_factory=WorldParams.nominal, repr=False)
 
     @property
     def seconds(self) -> float:
@@ -338,6 +342,7 @@ def build_scenario(
     progress: Callable[[int, int], None] | None = None,
     d415_timing: D415Timing | PulseAt | None = None,
     joint_map: Mapping[str, str] | None = None,
+    world: WorldKind | WorldParams = "nominal",
 ) -> Scenario:
     """Build a seeded scenario.
 
@@ -357,9 +362,16 @@ def build_scenario(
             same seed gives the same actor, rig poses and clocks under either timing.
         joint_map: Our joint name -> BVH joint name for ``motion_path``'s skeleton
             (:func:`~mocaprig.process.body.bvh.load_joint_map`; ``--joint-map``).
+        world: The hidden world parameters (:mod:`~mocaprig.drivers_mock.world`):
+            ``"nominal"`` (the default: the simulator's long-standing values, the same
+            sessions as before), ``"random"`` (drawn from the scenario's ``"world"`` stream,
+            the ranges a real rig can have) or a :class:`WorldParams`. They set the D415
+            pulse phase and slave delay (an explicit ``d415_timing`` wins), the clocks'
+            drifts, the Vicon occlusion gaps and the clapperboard's closing law here; the
+            mocks read the rest from :attr:`Scenario.world_params`.
 
     Raises:
-        ValidationError: unknown scenario, bad seed or length, unknown timing preset.
+        ValidationError: unknown scenario, bad seed or length, unknown timing preset or world.
         ProcessingError: the BVH file cannot be read or retargeted.
     """
     from mocaprig.process.body.markers import MarkerSet
@@ -378,6 +390,13 @@ def build_scenario(
         raise ValidationError(msg)
     noise = NoiseSettings() if noise is None else noise
     recipe = SCENARIOS[name]
+    params = _world_params(world, seed)
+    if params.vicon_gap_fraction is not None or params.vicon_facing_weight is not None:
+        noise = replace(
+            noise,
+            vicon_gap_fraction=_or(params.vicon_gap_fraction, noise.vicon_gap_fraction),
+            vicon_facing_weight=_or(params.vicon_facing_weight, noise.vicon_facing_weight),
+        )
     duration_ns = round(seconds * 1e9)
 
     shape = BodyShape.sample(stream_rng(seed, "shape"))
@@ -408,18 +427,30 @@ def build_scenario(
     rig = default_rig(stream_rng(seed, "rig"))
     if d415_timing is not None:
         rig = replace(rig, d415_timing=d415_timing_preset(d415_timing))
+    elif params.pulse_at is not None or params.slave_trigger_delay_us is not None:
+        timing = replace(rig.d415_timing, pulse_at=params.pulse_at or rig.d415_timing.pulse_at)
+        if params.slave_trigger_delay_us is not None:
+            timing = replace(timing, trigger_to_exposure_us=params.slave_trigger_delay_us)
+        rig = replace(rig, d415_timing=timing)
     clock_rng = stream_rng(seed, "clocks")
     clocks: dict[str, DeviceClock] = {"davis": davis_clock(clock_rng)}
     for d in rig.d415:
         clocks[d.name] = d415_clock(clock_rng, name=d.name)
     clocks["vicon"] = vicon_clock(clock_rng, rate_hz=rig.vicon.rate_hz)
+    clocks = _with_drifts(clocks, params, [d.name for d in rig.d415])
     if not noise.clock_jitter:
         clocks = {
             k: DeviceClock(c.name, c.offset_ns, c.drift_ppm, 0.0, c.unit_ns, c.seed)
             for k, c in clocks.items()
         }
     clapper = make_clapperboard(
-        stream_rng(seed, "clapperboard"), seconds=seconds, static_start_s=static_start_s
+        stream_rng(seed, "clapperboard"),
+        seconds=seconds,
+        static_start_s=static_start_s,
+        closing_s=params.clap_closing_s,
+        closing_power=params.clap_power,
+        bounce_rad=params.clap_bounce_rad,
+        bounce_s=params.clap_bounce_s,
     )
     vrng = stream_rng(seed, "vicon-window")
     vicon_start_ns = round(vrng.uniform(0.05, 0.25) * 1e9)
@@ -439,6 +470,38 @@ def build_scenario(
         noise=noise,
         vicon_start_ns=vicon_start_ns,
         vicon_end_ns=vicon_end_ns,
+        world_params=params,
     )
     _log.debug("built scenario %s seed %d (%.2f s)", scenario_name, seed, seconds)
     return scenario
+
+
+def _or(value: float | None, default: float) -> float:
+    return default if value is None else value
+
+
+def _world_params(world: WorldKind | WorldParams, seed: int) -> WorldParams:
+    """The hidden parameters: given, nominal, or drawn from the seed's ``"world"`` stream."""
+    if isinstance(world, WorldParams):
+        return world
+    kind = str(world)  # callers outside the type checker may pass anything
+    if kind == "nominal":
+        return WorldParams.nominal()
+    if kind == "random":
+        return WorldParams.draw(stream_rng(seed, "world"))
+    msg = f"world must be a WorldParams or one of {list(WORLD_KINDS)}, got {world!r}"
+    raise ValidationError(msg)
+
+
+def _with_drifts(
+    clocks: dict[str, DeviceClock], params: WorldParams, d415_names: list[str]
+) -> dict[str, DeviceClock]:
+    """The clocks with the world's drifts where it sets them (offsets and seeds kept)."""
+    drifts: dict[str, float] = {}
+    if params.d415_drift_ppm is not None:
+        drifts.update(zip(d415_names, params.d415_drift_ppm, strict=False))
+    if params.davis_drift_ppm is not None:
+        drifts["davis"] = params.davis_drift_ppm
+    if params.vicon_drift_ppm is not None:
+        drifts["vicon"] = params.vicon_drift_ppm
+    return {k: replace(c, drift_ppm=drifts[k]) if k in drifts else c for k, c in clocks.items()}

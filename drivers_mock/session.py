@@ -43,11 +43,13 @@ from mocaprig.drivers_mock.scenario import Scenario, build_scenario
 from mocaprig.drivers_mock.truth import write_truth, write_vicon_truth
 from mocaprig.drivers_mock.vicon import (
     AnalogCapture,
+    SyncWiring,
     simulate_sync_channel,
     simulate_vicon,
     write_c3d,
     write_nexus_csv,
 )
+from mocaprig.drivers_mock.world import WorldKind, WorldParams
 from mocaprig.errors import RecordingError, ValidationError
 
 __all__ = [
@@ -193,6 +195,7 @@ def simulate_session(
     cameras: int | None = None,
     davis_dvs: bool = False,
     d415_timing: D415Timing | PulseAt | None = None,
+    world: WorldKind | WorldParams = "nominal",
 ) -> SimulationResult:
     """Build a scenario and write its ground truth and simulated Vicon capture.
 
@@ -223,6 +226,10 @@ def simulate_session(
             trigger input, the sync box and the Vicon sync channel all follow it, and
             ``truth/scenario.json`` records it under ``rig.d415_timing``; the clocks of the
             truth are the same under either timing.
+        world: The hidden world parameters (:mod:`~mocaprig.drivers_mock.world`):
+            ``"nominal"`` (the default, the same sessions as before), ``"random"`` (drawn from
+            the seed) or a :class:`~mocaprig.drivers_mock.world.WorldParams`; recorded in
+            ``truth/scenario.json`` under ``world``, never in the recording or the C3D.
 
     Raises:
         RecordingError: the folder is not empty (without ``overwrite``) or cannot be written.
@@ -241,7 +248,7 @@ def simulate_session(
     def stage(label: str) -> Progress | None:
         return None if progress is None else progress(label)
 
-    world = build_scenario(
+    scene = build_scenario(
         scenario,
         seed=seed,
         seconds=seconds,
@@ -250,16 +257,17 @@ def simulate_session(
         noise=noise,
         progress=stage("retarget") if motion_path is not None else None,
         d415_timing=d415_timing,
+        world=world,
     )
     truth_dir = write_truth(
-        world, out, rate_hz=truth_rate_hz, overwrite=True, progress=stage("truth")
+        scene, out, rate_hz=truth_rate_hz, overwrite=True, progress=stage("truth")
     )
-    capture = simulate_vicon(world, progress=stage("vicon"))
+    capture = simulate_vicon(scene, progress=stage("vicon"))
     write_vicon_truth(capture, out)
     c3d_path = out / "vicon" / "session.c3d"
     if "d415" not in devices:
         # With D415s the C3D gets their sync channel: written once their pulses are known.
-        write_c3d(capture, c3d_path, subject=world.rig.vicon.subject)
+        write_c3d(capture, c3d_path, subject=scene.rig.vicon.subject)
     csv_path = write_nexus_csv(capture, out / "vicon" / "session.csv")
     recording = None
     if devices:
@@ -270,7 +278,7 @@ def simulate_session(
                 raise RecordingError(msg)
             session_mcap.unlink()
         recording = record_session(
-            world,
+            scene,
             session_mcap,
             devices=devices,
             cameras=cameras,
@@ -281,14 +289,19 @@ def simulate_session(
         if recording.sync_pulses_ns:
             sync = simulate_sync_channel(
                 capture,
-                world.clocks["vicon"],
+                scene.clocks["vicon"],
                 np.asarray(recording.sync_pulses_ns, dtype=np.int64),
-                rng=world.rng("vicon-sync"),
+                rng=scene.rng("vicon-sync"),
+                wiring=(
+                    None
+                    if scene.world_params.kind == "nominal"
+                    else SyncWiring.for_world(scene.world_params)
+                ),
             )
             _write_sync_truth(truth_dir / "vicon_sync.npz", sync, recording.sync_pulses_ns)
-            write_c3d(capture, c3d_path, subject=world.rig.vicon.subject, analogs=sync)
+            write_c3d(capture, c3d_path, subject=scene.rig.vicon.subject, analogs=sync)
         elif "d415" in devices:  # pragma: no cover - a recorded master always pulses
-            write_c3d(capture, c3d_path, subject=world.rig.vicon.subject)
+            write_c3d(capture, c3d_path, subject=scene.rig.vicon.subject)
     elapsed = time.monotonic() - t0
     _log.info("simulated %.2f s session (seed %d) into %s in %.1f s", seconds, seed, out, elapsed)
     return SimulationResult(
@@ -296,16 +309,16 @@ def simulate_session(
         truth_dir=truth_dir,
         c3d_path=c3d_path,
         csv_path=csv_path,
-        scenario=world,
-        seed=world.seed,
-        seconds=world.seconds,
-        num_body_markers=len(world.marker_names),
-        num_clapper_markers=len(world.clapperboard.marker_names),
+        scenario=scene,
+        seed=scene.seed,
+        seconds=scene.seconds,
+        num_body_markers=len(scene.marker_names),
+        num_clapper_markers=len(scene.clapperboard.marker_names),
         vicon_rate_hz=capture.rate_hz,
         vicon_frames=capture.num_frames,
         vicon_gap_fraction=capture.gap_fraction,
         truth_rate_hz=truth_rate_hz,
-        clap_times_ns=world.clap_times_ns,
+        clap_times_ns=scene.clap_times_ns,
         elapsed_s=elapsed,
         recording=recording,
     )

@@ -204,6 +204,7 @@ def scenario_description(scenario: Scenario, *, rate_hz: float | None = None) ->
         "clocks": [c.to_dict() for c in scenario.clocks.values()],
         "clapperboard": scenario.clapperboard.to_dict(),
         "noise": scenario.noise.to_dict(),
+        "world": scenario.world_params.to_dict(),
         "vicon_capture": {
             "start_ns": scenario.vicon_start_ns,
             "end_ns": scenario.vicon_end_ns,

@@ -64,6 +64,7 @@ from mocaprig.errors import RecordingError, ValidationError
 
 if TYPE_CHECKING:
     from mocaprig.drivers_mock.scenario import Scenario
+    from mocaprig.drivers_mock.world import WorldParams
 
 __all__ = [
     "C3D_POINT_SCALE",
@@ -146,6 +147,10 @@ class SyncWiring:
         latency_jitter_us: Uniform jitter of that latency, ± (µs).
         noise_v: Gaussian noise of the input (V RMS).
         lsb_v: Quantisation step (V): 16 bits over ±10 V.
+        offset_v: The input's offset (V).
+        antialias_hz: Cut-off of a 2-pole Butterworth anti-alias filter after the RC (Hz);
+            None: none, the edge is a pure first-order RC.
+        range_v: The input's full scale, ± (V): samples beyond it clip.
     """
 
     rate_hz: float = 2400.0
@@ -157,6 +162,43 @@ class SyncWiring:
     latency_jitter_us: float = 1.0
     noise_v: float = 0.002
     lsb_v: float = 20.0 / 65536.0
+    offset_v: float = 0.0
+    antialias_hz: float | None = None
+    range_v: float = 10.0
+
+    @classmethod
+    def for_world(cls, params: WorldParams) -> SyncWiring:
+        """The wiring of a world's hidden parameters (:mod:`drivers_mock.world`)."""
+        return cls(
+            tau_us=params.sync_tau_us,
+            latency_us=params.sync_latency_us,
+            latency_jitter_us=params.sync_latency_jitter_us,
+            noise_v=params.sync_noise_v,
+            lsb_v=2.0 * params.adc_range_v / 2.0**params.adc_bits,
+            offset_v=params.adc_offset_v,
+            antialias_hz=params.antialias_hz,
+            range_v=params.adc_range_v,
+        )
+
+
+def _step_response(tau_ns: float, antialias_hz: float) -> Callable[[F64], F64]:
+    """The unit step response of the RC (τ) followed by a 2-pole Butterworth at
+    ``antialias_hz``, a function of the time since the step (ns; 0 before it)."""
+    from scipy.signal import residue
+
+    # µs keep the polynomial coefficients well-scaled for the partial fractions.
+    tau_us = tau_ns * 1e-3
+    wc = 2.0 * np.pi * antialias_hz * 1e-6  # rad per µs
+    den = np.polymul(np.polymul([tau_us, 1.0], [1.0, np.sqrt(2.0) * wc, wc * wc]), [1.0, 0.0])
+    # H(s)/s = Σ r_k / (s − p_k), so h(t) = Σ r_k exp(p_k t).
+    r, p, _ = residue([wc * wc], den)
+
+    def h(t: F64) -> F64:
+        tt = np.maximum(t, 0.0) * 1e-3
+        out = np.real(np.exp(np.multiply.outer(tt, p)) @ r)
+        return np.where(t > 0, out, 0.0)
+
+    return h
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -239,7 +281,21 @@ def simulate_sync_channel(
         level = np.where(k >= 0, level, 0.0)
     else:
         level = np.zeros(n_samples)
+    if w.antialias_hz is not None and edges.size:
+        # A filtered edge is no first-order curve: sum the chain's step responses of the
+        # last few switches (earlier ones have settled within 33 ms ≫ τ).
+        h = _step_response(tau, w.antialias_hz)
+        level = np.zeros(n_samples)
+        for back in range(3):
+            ok = k - back >= 0
+            jj = np.clip(k - back, 0, edges.size - 1)
+            prev = np.where(jj > 0, target[np.maximum(jj - 1, 0)], 0.0)
+            step = (target[jj] - prev) * h(t - edges[jj])
+            level += np.where(ok, step, 0.0)
+        settled = np.where(k - 3 >= 0, target[np.clip(k - 3, 0, max(edges.size - 1, 0))], 0.0)
+        level += settled
     volts = w.low_v + (w.high_v - w.low_v) * level + rng.normal(0.0, w.noise_v, n_samples)
+    volts = np.clip(volts + w.offset_v, -w.range_v, w.range_v)
     volts = np.round(volts / w.lsb_v) * w.lsb_v
     values = volts[:, None]
     edges_ns = np.round(edges).astype(np.int64)

@@ -14,13 +14,21 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
-from typing import Any, TextIO
+from typing import Any, TextIO, get_args
 
 from mocaprig import __version__
 from mocaprig.errors import MocaprigError
 from mocaprig.json_values import to_jsonable
+from mocaprig.progress import ProgressMode, end_status_line, progress_mode
 
-__all__ = ["Handler", "add_json_flag", "emit_json", "main", "usage_handler"]
+__all__ = [
+    "Handler",
+    "add_json_flag",
+    "command_progress_mode",
+    "emit_json",
+    "main",
+    "usage_handler",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -34,6 +42,7 @@ examples:
   mocaprig demo --out demo-out                 simulate, record, calibrate, process; report
   mocaprig simulate --seconds 5 --out sim      simulated session: truth + Vicon C3D
   mocaprig vicon info capture.c3d --json       what a C3D or Nexus CSV holds
+  mocaprig --progress always demo 2> demo.log  progress lines in a log file too
 
 Run `mocaprig COMMAND --help` for a command's options and examples.
 """
@@ -64,6 +73,22 @@ def add_json_flag(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def command_progress_mode(args: argparse.Namespace) -> ProgressMode:
+    """The progress mode of a parsed command: ``never`` under ``-q`` or ``--json`` (stdout
+    stays one JSON object and stderr quiet), else ``--progress`` (``auto`` by default)."""
+    if getattr(args, "quiet", False) or getattr(args, "json", False):
+        return "never"
+    mode: ProgressMode = getattr(args, "progress", "auto")
+    return mode
+
+
+def _log_below_status_line(_record: logging.LogRecord) -> bool:
+    """A log filter that lets every record through after ending a status line being drawn, so
+    that the record starts on a line of its own."""
+    end_status_line()
+    return True
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mocaprig",
@@ -73,7 +98,16 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"mocaprig {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", help="only warnings and errors; no progress"
+    )
+    parser.add_argument(
+        "--progress",
+        choices=get_args(ProgressMode),
+        default="auto",
+        help="progress lines on stderr: on a terminal (auto, default), on any stream (always: "
+        "a log file), or never; -q and --json imply never",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     eps = sorted(entry_points(group="mocaprig.commands"), key=lambda e: e.name)
     if not eps:
@@ -97,9 +131,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        if _log_below_status_line not in handler.filters:
+            handler.addFilter(_log_below_status_line)
     func: Handler = getattr(args, "func", None) or usage_handler(parser)
     try:
-        return func(args)
+        with progress_mode(command_progress_mode(args)):
+            return func(args)
     except MocaprigError as err:
         print(f"ERROR: {err}", file=sys.stderr)
         return 1

@@ -18,8 +18,10 @@ Lengths are written in centimetres (the common BVH unit), ``unit_scale=0.01`` on
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import shutil
 from pathlib import Path
 from typing import Final, Literal
 
@@ -33,7 +35,14 @@ from mocaprig.process.body.shape import BodyShape, rest_offsets
 from mocaprig.process.body.skeleton import JOINTS, PARENTS, POSE_DIM
 from mocaprig.validation import check_finite, check_positive, check_shape
 
-__all__ = ["BVH_CM_PER_M", "Y_UP_FROM_Z_UP", "bvh_joint_name", "bvh_text", "write_bvh"]
+__all__ = [
+    "BVH_CM_PER_M",
+    "Y_UP_FROM_Z_UP",
+    "BvhWriter",
+    "bvh_joint_name",
+    "bvh_text",
+    "write_bvh",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -101,6 +110,32 @@ def _motion(poses: F64, shape: BodyShape, up: Literal["y", "z"]) -> F64:
     return np.concatenate([root_pos * BVH_CM_PER_M, euler.reshape(poses.shape[0], -1)], axis=1)
 
 
+def _check_options(rate_hz: float, up: str, who: str) -> None:
+    check_positive(rate_hz, name="rate_hz")
+    if up not in ("y", "z"):
+        msg = f"{who}: up must be 'y' or 'z', got {up!r}"
+        raise ValidationError(msg)
+
+
+def _check_poses(poses: npt.ArrayLike, who: str) -> F64:
+    q = np.asarray(check_finite(check_shape(poses, ["F", POSE_DIM], name="poses")), np.float64)
+    if q.shape[0] == 0:
+        msg = f"{who}: no poses to write; give at least one (F, 33) pose"
+        raise ValidationError(msg)
+    return q
+
+
+def _header(shape: BodyShape, frames: int, rate_hz: float) -> list[str]:
+    lines = _hierarchy(rest_offsets(shape) * BVH_CM_PER_M)
+    lines.extend(["MOTION", f"Frames: {frames}", f"Frame Time: {1.0 / rate_hz:.9f}"])
+    return lines
+
+
+def _motion_lines(poses: F64, shape: BodyShape, up: Literal["y", "z"]) -> str:
+    values = _motion(poses, shape, up)
+    return "".join(" ".join(f"{v:.6f}" for v in row) + "\n" for row in values)
+
+
 def bvh_text(
     poses: npt.ArrayLike,
     shape: BodyShape,
@@ -113,20 +148,106 @@ def bvh_text(
     Raises:
         ValidationError: wrong pose shape, non-finite values, no frames or a bad rate.
     """
-    q = np.asarray(check_finite(check_shape(poses, ["F", POSE_DIM], name="poses")), np.float64)
-    if q.shape[0] == 0:
-        msg = "bvh_text: no poses to write; give at least one (F, 33) pose"
-        raise ValidationError(msg)
-    check_positive(rate_hz, name="rate_hz")
-    if up not in ("y", "z"):
-        msg = f"bvh_text: up must be 'y' or 'z', got {up!r}"
-        raise ValidationError(msg)
-    offsets_cm = rest_offsets(shape) * BVH_CM_PER_M
-    lines = _hierarchy(offsets_cm)
-    lines.extend(["MOTION", f"Frames: {q.shape[0]}", f"Frame Time: {1.0 / rate_hz:.9f}"])
-    values = _motion(q, shape, up)
-    lines.extend(" ".join(f"{v:.6f}" for v in row) for row in values)
-    return "\n".join(lines) + "\n"
+    q = _check_poses(poses, "bvh_text")
+    _check_options(rate_hz, up, "bvh_text")
+    return "\n".join(_header(shape, q.shape[0], rate_hz)) + "\n" + _motion_lines(q, shape, up)
+
+
+class BvhWriter:
+    """Write poses as a BVH file block by block (memory bounded by a block; module doc).
+
+    The motion lines go to a file beside ``path`` as they come; :meth:`close` writes the
+    hierarchy and the frame count, copies the motion after them and moves the file into place,
+    so a long take's poses are never all held. Leaving the ``with`` block on an exception removes
+    the partial files.
+
+    Raises:
+        ValidationError: bad options. ProcessingError: ``path`` exists and ``overwrite`` is
+            False, or a write failed.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        shape: BodyShape,
+        *,
+        rate_hz: float,
+        up: Literal["y", "z"] = "y",
+        overwrite: bool = False,
+    ) -> None:
+        _check_options(rate_hz, up, "BvhWriter")
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            msg = f"{self.path} exists; pass --overwrite (overwrite=True) to replace it"
+            raise ProcessingError(msg)
+        self._shape, self._rate_hz, self._up = shape, rate_hz, up
+        self._frames = 0
+        self._closed = False
+        self._body = self.path.with_name(f".{self.path.name}.{os.getpid()}.motion.tmp")
+        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        try:
+            self._fh = self._body.open("w", encoding="utf-8", newline="\n")
+        except OSError as err:
+            msg = f"cannot write BVH file {self.path}: {err}; check the folder and free space"
+            raise ProcessingError(msg) from err
+
+    def __enter__(self) -> BvhWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()
+
+    @property
+    def frames(self) -> int:
+        """Frames written so far."""
+        return self._frames
+
+    def write(self, poses: npt.ArrayLike) -> None:
+        """Append poses (F, 33) (:mod:`process.body.skeleton` layout)."""
+        q = _check_poses(poses, f"BVH {self.path}")
+        try:
+            self._fh.write(_motion_lines(q, self._shape, self._up))
+        except OSError as err:
+            self.discard()
+            msg = f"cannot write BVH file {self.path}: {err}; check the folder and free space"
+            raise ProcessingError(msg) from err
+        self._frames += q.shape[0]
+
+    def close(self) -> Path:
+        """Write the hierarchy and frame count, then the motion; move the file into place."""
+        if self._closed:
+            return self.path
+        if self._frames == 0:
+            self.discard()
+            msg = f"BVH {self.path}: no poses were written; give at least one (F, 33) pose"
+            raise ValidationError(msg)
+        try:
+            self._fh.close()
+            with self._tmp.open("w", encoding="utf-8", newline="\n") as out:
+                out.write("\n".join(_header(self._shape, self._frames, self._rate_hz)) + "\n")
+                with self._body.open("r", encoding="utf-8", newline="\n") as body:
+                    shutil.copyfileobj(body, out, 1 << 20)
+            self._tmp.replace(self.path)
+        except OSError as err:
+            self.discard()
+            msg = f"cannot write BVH file {self.path}: {err}; check the folder and free space"
+            raise ProcessingError(msg) from err
+        finally:
+            self._body.unlink(missing_ok=True)
+        self._closed = True
+        _log.info("wrote %s (%d frames at %g Hz)", self.path, self._frames, self._rate_hz)
+        return self.path
+
+    def discard(self) -> None:
+        """Stop and remove the partial files (nothing is left at ``path``)."""
+        self._closed = True
+        with contextlib.suppress(OSError):
+            self._fh.close()
+        self._body.unlink(missing_ok=True)
+        self._tmp.unlink(missing_ok=True)
 
 
 def write_bvh(
@@ -144,18 +265,7 @@ def write_bvh(
         ValidationError: bad poses or options (:func:`bvh_text`).
         ProcessingError: ``path`` exists and ``overwrite`` is False, or the write failed.
     """
-    dst = Path(path)
-    if dst.exists() and not overwrite:
-        msg = f"{dst} exists; pass --overwrite (overwrite=True) to replace it"
-        raise ProcessingError(msg)
-    text = bvh_text(poses, shape, rate_hz=rate_hz, up=up)
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8", newline="\n")
-        tmp.replace(dst)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        msg = f"cannot write BVH file {dst}: {err}; check the folder and free space"
-        raise ProcessingError(msg) from err
-    _log.info("wrote %s (%d frames at %g Hz)", dst, np.shape(poses)[0], rate_hz)
-    return dst
+    q = _check_poses(poses, "write_bvh")
+    with BvhWriter(path, shape, rate_hz=rate_hz, up=up, overwrite=overwrite) as w:
+        w.write(q)
+    return w.path

@@ -398,14 +398,16 @@ def democap_train(args: argparse.Namespace) -> int:
         corpus_subjects=args.corpus_subjects,
         validation_motions=validation,
     )
+    bar = ProgressBar("democap train", unit="steps")
     ckpt = train(
         Path(args.out),
         opts,
         config=config,
         resume=args.resume,
         overwrite=args.overwrite,
-        progress=ProgressBar("democap train"),
+        progress=bar,
     )
+    bar.finish()
     last = ckpt.history[-1] if ckpt.history else {}
     summary: dict[str, Any] = {
         "checkpoint": str(args.out),
@@ -506,6 +508,10 @@ def democap_eval(args: argparse.Namespace) -> int:
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)
+    # evaluate/run_protocol report no progress of their own: one step per figure.
+    bar = ProgressBar("democap eval", unit="figures")
+    steps = len(cams) * (1 if special else len(protocols))
+    bar(0, steps)
     seen = False
     results: list[ProtocolResult] = []
     by_cameras: dict[str, Any] = {}
@@ -539,10 +545,11 @@ def democap_eval(args: argparse.Namespace) -> int:
             )
             results.append(res)
             by_cameras[str(k)] = res.to_dict()
+            bar(len(by_cameras), steps)
         results = results[:1]
     else:
-        for proto in protocols:
-            for k in cams:
+        for n_proto, proto in enumerate(protocols):
+            for n_cams, k in enumerate(cams):
                 got = run_protocol(
                     predictor,
                     proto,
@@ -555,6 +562,7 @@ def democap_eval(args: argparse.Namespace) -> int:
                 if k == cams[0]:
                     results += got
                 by_cameras[str(k)] = got[0].to_dict()
+                bar(n_proto * len(cams) + n_cams + 1, steps)
     for r in results:
         if r.trained_clips:
             print(
@@ -637,6 +645,7 @@ def democap_run(args: argparse.Namespace) -> int:
         msg = f"--threads must be >= 1, got {args.threads}"
         raise ValidationError(msg)
     torch.set_num_threads(args.threads)
+    bar = ProgressBar("democap run", unit="instants")
     result = run_replay(
         args.session,
         args.calib,
@@ -649,8 +658,9 @@ def democap_run(args: argparse.Namespace) -> int:
         every=args.every,
         overwrite=args.overwrite,
         crop_box_m=None if args.no_crop else DEFAULT_CROP_BOX_M,
-        progress=ProgressBar("democap run"),
+        progress=bar,
     )
+    bar.finish()
     summary = result.summary()
     if args.json:
         emit_json(summary)

@@ -65,8 +65,20 @@ from mocaprig.process.eventcap.pipeline import (
 )
 from mocaprig.process.eventcap.raster import Raster, rasterize
 from mocaprig.process.eventcap.refine import RefineOptions, refine_frame, refine_frames
-from mocaprig.process.eventcap.run import EventcapRunResult, run_eventcap
-from mocaprig.process.eventcap.take import EventSource, TakeResult, array_source, run_take
+from mocaprig.process.eventcap.run import (
+    EventcapResultsWriter,
+    EventcapRunResult,
+    ResultsHeader,
+    run_eventcap,
+)
+from mocaprig.process.eventcap.take import (
+    EventSource,
+    TakeChunk,
+    TakeResult,
+    array_source,
+    iter_take,
+    run_take,
+)
 from mocaprig.process.eventcap.tracking import TrackingOptions, TrackingResult, track_frames
 
 __all__ = [
@@ -86,6 +98,7 @@ __all__ = [
     "EventSource",
     "EventcapEvaluation",
     "EventcapOptions",
+    "EventcapResultsWriter",
     "EventcapRunResult",
     "FrameDetections",
     "JsonDetections",
@@ -93,10 +106,12 @@ __all__ = [
     "OpenPoseJsonDetections",
     "Raster",
     "RefineOptions",
+    "ResultsHeader",
     "SharpFrame",
     "SyntheticDetections",
     "SyntheticNoise",
     "TableResponse",
+    "TakeChunk",
     "TakeResult",
     "TakeWithTruth",
     "TrackingErrors",
@@ -112,6 +127,7 @@ __all__ = [
     "fit_frame",
     "frame_detections",
     "interpolate_poses",
+    "iter_take",
     "linear_baseline",
     "rasterize",
     "read_ecd_take",

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mocaprig.cli import add_json_flag, emit_json, usage_handler
-from mocaprig.progress import StatusLine
+from mocaprig.progress import StageProgress
 
 __all__ = ["eventcap_eval", "eventcap_run", "register_eventcap"]
 
@@ -203,8 +203,8 @@ def eventcap_eval(args: argparse.Namespace) -> int:
     # Batches are many small solves: one thread avoids the contention two threads cause.
     torch.set_num_threads(args.threads)
     simulate = load_mock_factory("eventcap-take")
-    status = StatusLine()
-    status.show(f"simulating the take ({args.seconds:g} s)…")
+    progress = StageProgress("eventcap eval: ")
+    progress("simulating the DAVIS (µs)", 0, round(args.seconds * 1e6))
     take = simulate(
         seed=args.seed,
         seconds=args.seconds,
@@ -212,14 +212,8 @@ def eventcap_eval(args: argparse.Namespace) -> int:
         joint_map=None if args.joint_map is None else load_joint_map(args.joint_map),
         scenario=args.scenario,
         start_s=args.start,
-        progress=lambda done, total: status.show(
-            f"simulating the DAVIS: {done / 1e6:.1f}/{total / 1e6:.1f} s"
-        ),
+        progress=progress.stage("simulating the DAVIS (µs)"),
     )
-
-    def progress(stage: str, done: int, total: int) -> None:
-        status.show(f"{stage}: {done}/{total}")
-
     result = evaluate_take(
         take,
         protocol="simulated take, realistic DAVIS240C, synthetic detections",
@@ -228,7 +222,7 @@ def eventcap_eval(args: argparse.Namespace) -> int:
         with_all=not args.no_all,
         progress=progress,
     )
-    status.done()
+    progress.done()
     out: dict[str, Any] = result.to_json()
     if args.json:
         emit_json(out)
@@ -275,12 +269,8 @@ def eventcap_run(args: argparse.Namespace) -> int:
 
     # Batches are many small solves: one thread avoids the contention two threads cause.
     torch.set_num_threads(args.threads)
-    status = StatusLine()
-
-    def progress(stage: str, done: int, total: int) -> None:
-        label = {"index": "indexing frames and events", "batches": "batches", "write": "writing"}
-        status.show(f"{label.get(stage, stage)}: {done}/{total}")
-
+    labels = {"index": "indexing frames and events", "write": "finishing the files"}
+    progress = StageProgress("eventcap run: ", labels=labels)
     result = run_eventcap(
         args.session,
         args.calib,
@@ -299,7 +289,7 @@ def eventcap_run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         progress=progress,
     )
-    status.done()
+    progress.done()
     out: dict[str, Any] = result.summary()
     stages = ", ".join(f"{k.removesuffix('_s')} {v:.2f} s" for k, v in out["timings_s"].items())
     print(f"time per stage: {stages}", file=sys.stderr)

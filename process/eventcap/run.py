@@ -9,11 +9,11 @@ its calibration, and:
 2. builds the detector from a detections file (our JSON, an OpenPose ``--write_json`` folder or
    a COCO keypoint JSON; OpenPose/COCO frame ``i`` is the recording's ``i``-th APS frame), the
    template from a height or a body-shape JSON, the camera from the calibration's DAVIS entry;
-3. runs :func:`~.take.run_take` over the selected frames. **Memory follows the batch**: an APS
-   image is decoded when its batch asks for it (two kept), a batch's events are read from the
-   file when the batch runs;
-4. writes the results (:func:`write_results_mcap`, :func:`write_results_c3d`,
-   :func:`write_results_bvh`).
+3. runs :func:`~.take.iter_take` over the selected frames. **Memory follows the batch**: an APS
+   image is decoded when its batch asks for it, a batch's events are read from the file when
+   the batch runs, and each batch's 1 kHz output goes to the files as soon as it is done
+   (:class:`EventcapResultsWriter`); nothing grows with the take but the frame and packet
+   indexes.
 
 Outputs:
 
@@ -23,23 +23,25 @@ Outputs:
   1 kHz tracking frame. ``log_time`` = the entity stamp = the frame's time on the calibration's
   reference clock when the calibration maps the DAVIS clock, else DAVIS time (ns since its
   timestamp reset); which one is in the channel metadata (``log_time``) and
-  :attr:`EventcapRunResult.time_base`. Frame id: the calibration's world frame. The file
+  :attr:`ResultsHeader.time_base`. Frame id: the calibration's world frame. The file
   carries an ``eventcap_run`` metadata record and the calibration as ``calibration.toml``.
-* **C3D** (:func:`calib.c3d_write.write_c3d`, mm): the 19 keypoints (:data:`EVENTCAP_KEYPOINTS`
-  names), 1000 Hz, first frame 1 (row ``i`` at the first tracking time + ``i`` ms).
-* **BVH** (:func:`process.body.bvh_export.write_bvh`): the 33-DoF poses at 1000 Hz on the
+* **C3D** (:class:`calib.c3d_write.C3DFrameWriter`, mm): the 19 keypoints
+  (:data:`EVENTCAP_KEYPOINTS` names), 1000 Hz, first frame 1 (row ``i`` at the first tracking
+  time + ``i`` ms).
+* **BVH** (:class:`process.body.bvh_export.BvhWriter`): the 33-DoF poses at 1000 Hz on the
   fitted template's skeleton (Y up, cm).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
 import os
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, Literal, overload
 
@@ -56,6 +58,7 @@ from mocaprig.calib.calibration_attachment import ATTACHMENT_NAME
 from mocaprig.errors import CalibrationError, ProcessingError, RecordingError, ValidationError
 from mocaprig.process.body.kinematics import EVENTCAP_KEYPOINTS
 from mocaprig.process.body.shape import BodyShape
+from mocaprig.process.body.skeleton import POSE_DIM
 from mocaprig.process.eventcap.camera import EventCamera
 from mocaprig.process.eventcap.detections import (
     CocoKeypointDetections,
@@ -64,7 +67,7 @@ from mocaprig.process.eventcap.detections import (
     OpenPoseJsonDetections,
 )
 from mocaprig.process.eventcap.pipeline import ApsFrame, EventcapOptions
-from mocaprig.process.eventcap.take import TakeResult, run_take
+from mocaprig.process.eventcap.take import iter_take
 from mocaprig.process.outputs import replace_atomically
 from mocaprig.process.scene import capsule_scene, points_scene
 
@@ -74,10 +77,14 @@ __all__ = [
     "METADATA_NAME",
     "TEMPLATE_TOPIC",
     "DetectionsFormat",
+    "EventcapResultsWriter",
     "EventcapRunResult",
     "RecordingEventSource",
     "RecordingFrames",
+    "ResultsHeader",
     "TemplateView",
+    "check_coverage",
+    "davis_calibration",
     "default_outputs",
     "keypoint_scene",
     "load_detector",
@@ -85,9 +92,6 @@ __all__ = [
     "run_eventcap",
     "select_davis",
     "template_scene",
-    "write_results_bvh",
-    "write_results_c3d",
-    "write_results_mcap",
 ]
 
 _log = logging.getLogger(__name__)
@@ -432,9 +436,12 @@ def load_shape(*, height_m: float | None = None, shape_path: str | Path | None =
         raise ValidationError(msg) from err
 
 
-def _davis_calibration(
-    cal: Calibration, davis: RecordedDavis, cal_source: str
-) -> CameraCalibration:
+def davis_calibration(cal: Calibration, davis: RecordedDavis, cal_source: str) -> CameraCalibration:
+    """The calibration entry of *davis* (by serial, else by label); ``cal_source`` names the file.
+
+    Raises:
+        CalibrationError: the calibration has no entry for this DAVIS.
+    """
     serial = davis.device.serial
     for c in cal.cameras:
         if (c.kind == "davis" and serial in (c.serial, c.name)) or c.name == davis.device.label:
@@ -451,44 +458,71 @@ def _davis_calibration(
 # ------------------------------------------------------------------------------ result
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class EventcapRunResult:
-    """What :func:`run_eventcap` produced.
+@dataclass(frozen=True, slots=True)
+class ResultsHeader:
+    """What the results files say about the run (the MCAP's :data:`METADATA_NAME` record).
 
     Attributes:
         session: The recording.
-        outputs: ``{"mcap": ..., "c3d": ..., "bvh": ...}`` paths written.
         davis: The DAVIS (``davis/<serial>``).
-        frames_total: APS frames in the recording.
-        frames_used: APS frames the run used (batches + 1).
-        t_davis_us: ``(T,)`` tracking frame times, DAVIS µs, every 1 ms.
-        t_out_ns: ``(T,)`` the same instants on :attr:`time_base` (ns), as written.
-        time_base: ``"<reference clock>"`` when the calibration maps the DAVIS clock, else
-            ``"davis"``.
+        batches: Batches run.
+        frames: 1 kHz tracking frames the run writes.
+        time_base: The clock of the written times (``"<reference clock>"`` or ``"davis"``).
+        t_first_davis_us: The first tracking frame's time, DAVIS µs.
         world_frame: The calibration's world frame.
-        poses: ``(T, 33)`` poses (world, m, rad).
-        keypoints_m: ``(T, 19, 3)`` keypoints, world, m.
-        shape: The template used.
         detection_source: The detector's label.
-        events_read: Events read from the file over all batches.
-        peak_window_events: The largest batch's events.
-        timings_s: Wall seconds per stage: ``index_s`` (frames and packets indexed), the
-            pipeline's stages summed over batches, ``take_s``, ``write_s``, ``total_s``.
     """
 
     session: Path
-    outputs: Mapping[str, Path]
     davis: str
+    batches: int
+    frames: int
+    time_base: str
+    t_first_davis_us: int
+    world_frame: str
+    detection_source: str = ""
+
+    def record(self) -> dict[str, str]:
+        """The metadata record (strings)."""
+        from mocaprig import __version__
+
+        return {
+            "software_version": __version__,
+            "session": str(self.session),
+            "davis": self.davis,
+            "batches": str(self.batches),
+            "frames": str(self.frames),
+            "rate_hz": f"{_RATE_HZ:g}",
+            "time_base": self.time_base,
+            "t_first_davis_us": str(self.t_first_davis_us),
+            "world_frame": self.world_frame,
+            "detections": self.detection_source,
+        }
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EventcapRunResult:
+    """What :func:`run_eventcap` produced. The 1 kHz poses went to the files as the batches
+    finished and are not held here (:meth:`read_keypoints_m` reads them back).
+
+    Attributes:
+        header: What the results files say about the run.
+        outputs: ``{"mcap": ..., "c3d": ..., "bvh": ...}`` paths written.
+        frames_total: APS frames in the recording.
+        frames_used: APS frames the run used (batches + 1).
+        t_first_ns: The first tracking frame's time on :attr:`ResultsHeader.time_base`, ns.
+        events_read: Events read from the file over all batches.
+        peak_window_events: The largest batch's events.
+        timings_s: Wall seconds per stage: ``index_s`` (frames and packets indexed), the
+            pipeline's stages summed over batches, ``take_s``, ``write_s`` (the files' own
+            writing, inside ``take_s`` as the batches stream), ``total_s``.
+    """
+
+    header: ResultsHeader
+    outputs: Mapping[str, Path]
     frames_total: int
     frames_used: int
-    t_davis_us: I64 = field(repr=False)
-    t_out_ns: I64 = field(repr=False)
-    time_base: str
-    world_frame: str
-    poses: F64 = field(repr=False)
-    keypoints_m: F64 = field(repr=False)
-    shape: BodyShape = field(repr=False)
-    detection_source: str = ""
+    t_first_ns: int
     events_read: int = 0
     peak_window_events: int = 0
     timings_s: Mapping[str, float] = field(default_factory=dict)
@@ -496,24 +530,37 @@ class EventcapRunResult:
     @property
     def batches(self) -> int:
         """Batches run (consecutive APS frame pairs)."""
-        return max(self.frames_used - 1, 0)
+        return self.header.batches
+
+    @property
+    def t_davis_us(self) -> I64:
+        """(T,) the tracking frame times, DAVIS µs (every 1 ms from the first)."""
+        step = round(1e6 / _RATE_HZ)
+        return self.header.t_first_davis_us + step * np.arange(self.header.frames, dtype=np.int64)
+
+    def read_keypoints_m(self) -> F64:
+        """(T, 19, 3) the written keypoints (world, m), read back from the C3D (float32)."""
+        from mocaprig.calib.c3d_read import read_c3d
+
+        return np.asarray(read_c3d(self.outputs["c3d"]).positions_m, dtype=np.float64)
 
     def summary(self) -> dict[str, Any]:
         """A JSON-ready summary (what ``eventcap run --json`` prints)."""
+        h = self.header
         return {
-            "session": str(self.session),
-            "davis": self.davis,
+            "session": str(h.session),
+            "davis": h.davis,
             "frames_total": self.frames_total,
             "frames_used": self.frames_used,
             "batches": self.batches,
-            "tracking_frames": int(self.t_davis_us.size),
+            "tracking_frames": h.frames,
             "rate_hz": _RATE_HZ,
-            "t_first_davis_us": int(self.t_davis_us[0]),
-            "t_last_davis_us": int(self.t_davis_us[-1]),
-            "time_base": self.time_base,
-            "t_first_ns": int(self.t_out_ns[0]),
-            "world_frame": self.world_frame,
-            "detections": self.detection_source,
+            "t_first_davis_us": h.t_first_davis_us,
+            "t_last_davis_us": h.t_first_davis_us + round(1e6 / _RATE_HZ) * (h.frames - 1),
+            "time_base": h.time_base,
+            "t_first_ns": self.t_first_ns,
+            "world_frame": h.world_frame,
+            "detections": h.detection_source,
             "events_read": self.events_read,
             "peak_window_events": self.peak_window_events,
             "outputs": {k: str(v) for k, v in self.outputs.items()},
@@ -548,7 +595,7 @@ def _check_outputs(paths: Mapping[str, Path], overwrite: bool) -> None:
         raise ValidationError(msg)
 
 
-def _check_coverage(detector: Detector, frames: Sequence[ApsFrame], source: str) -> None:
+def check_coverage(detector: Detector, frames: Sequence[ApsFrame], source: str) -> None:
     """Every used APS frame must have a detection (the batch fit anchors on them)."""
     for k in range(len(frames)):
         t = int(frames[k].t_us)
@@ -643,7 +690,7 @@ def run_eventcap(
 
     with Recording(session_path) as rec:
         dav = select_davis(rec, davis)
-        camera = EventCamera.from_calibration(_davis_calibration(cal, dav, cal_source))
+        camera = EventCamera.from_calibration(davis_calibration(cal, dav, cal_source))
         report("index", 0, 2)
         t0 = time.perf_counter()
         frames = RecordingFrames(
@@ -664,108 +711,86 @@ def run_eventcap(
             )
             raise ProcessingError(msg)
         detector = load_detector(detections, frames.all_times_us, kind=detections_format)
-        _check_coverage(detector, frames, str(detections))
-        take: TakeResult = run_take(
-            events,
-            frames,
-            detector,
-            camera,
+        check_coverage(detector, frames, str(detections))
+        clock = None
+        try:
+            clock = cal.clock(dav.device.label)
+        except CalibrationError:
+            _log.info(
+                "%s: the calibration maps no clock for %s; results stamped in DAVIS time",
+                session_path,
+                dav.device.label,
+            )
+        t_first_us, t_last_us = int(frames[0].t_us), int(frames[len(frames) - 1].t_us)
+        header = ResultsHeader(
+            session=session_path,
+            davis=dav.device.label,
+            batches=len(frames) - 1,
+            frames=(t_last_us - t_first_us) // opt.step_us + 1,
+            time_base=cal.reference_clock if clock is not None else "davis",
+            t_first_davis_us=t_first_us,
+            world_frame=cal.world_frame,
+            detection_source=detector.source,
+        )
+
+        def out_ns(t_us: I64) -> I64:
+            t_dev_ns = t_us.astype(np.int64) * 1000
+            t = clock.to_reference_ns(t_dev_ns) if clock is not None else t_dev_ns
+            return np.asarray(t, dtype=np.int64)
+
+        t0 = time.perf_counter()
+        stage: dict[str, float] = {}
+        t_write = 0.0
+        with EventcapResultsWriter(
+            header,
             shape,
-            options=opt,
-            progress=lambda done, total: report("batches", done, total),
-        )
-    clock = None
-    try:
-        clock = cal.clock(dav.device.label)
-    except CalibrationError:
-        _log.info(
-            "%s: the calibration maps no clock for %s; results stamped in DAVIS time",
-            session_path,
-            dav.device.label,
-        )
-    t_dev_ns = take.t_us.astype(np.int64) * 1000
-    t_out = clock.to_reference_ns(t_dev_ns) if clock is not None else t_dev_ns
-    stage = {f"{k}_s": v for k, v in take.stage_seconds().items()}
-    result = EventcapRunResult(
-        session=session_path,
-        outputs=paths,
-        davis=dav.device.label,
-        frames_total=len(frames.all_times_us),
-        frames_used=len(frames),
-        t_davis_us=take.t_us,
-        t_out_ns=np.asarray(t_out, dtype=np.int64),
-        time_base=cal.reference_clock if clock is not None else "davis",
-        world_frame=cal.world_frame,
-        poses=take.poses,
-        keypoints_m=take.keypoints_m,
-        shape=shape,
-        detection_source=take.detection_source,
-        events_read=events.events_read,
-        peak_window_events=events.peak_window_events,
-    )
-    t0 = time.perf_counter()
-    report("write", 0, 3)
-    write_results_mcap(
-        result, paths["mcap"], calibration=cal, template=template, overwrite=overwrite
-    )
-    report("write", 1, 3)
-    write_results_c3d(result, paths["c3d"], overwrite=overwrite)
-    report("write", 2, 3)
-    write_results_bvh(result, paths["bvh"], overwrite=overwrite)
-    report("write", 3, 3)
+            mcap=paths["mcap"],
+            c3d=paths["c3d"],
+            bvh=paths["bvh"],
+            calibration=cal,
+            template=template,
+            overwrite=overwrite,
+        ) as writer:
+            for chunk in iter_take(events, frames, detector, camera, shape, options=opt):
+                for k, v in chunk.result.stage_seconds.items():
+                    stage[f"{k}_s"] = stage.get(f"{k}_s", 0.0) + v
+                tw = time.perf_counter()
+                writer.write(out_ns(chunk.t_us), chunk.poses, chunk.keypoints_m)
+                t_write += time.perf_counter() - tw
+                report("batches", chunk.batch + 1, chunk.batches)
+            report("write", 0, 1)
+            tw = time.perf_counter()
+        t_write += time.perf_counter() - tw
+        report("write", 1, 1)
+        t_take = time.perf_counter() - t0
     timings = {
         "index_s": t_index,
         **stage,
-        "take_s": take.seconds,
-        "write_s": time.perf_counter() - t0,
+        "take_s": t_take,
+        "write_s": t_write,
         "total_s": time.perf_counter() - t_start,
     }
-    result = replace(result, timings_s=timings)
+    result = EventcapRunResult(
+        header=header,
+        outputs=paths,
+        frames_total=len(frames.all_times_us),
+        frames_used=len(frames),
+        t_first_ns=writer.t_first_ns,
+        events_read=events.events_read,
+        peak_window_events=events.peak_window_events,
+        timings_s=timings,
+    )
     _log.info(
         "%s: %d batches, %d frames at 1 kHz, %.1f s",
         session_path,
         result.batches,
-        result.t_davis_us.size,
+        header.frames,
         timings["total_s"],
     )
     return result
 
 
 # ------------------------------------------------------------------------------ writers
-
-
-def write_results_c3d(
-    result: EventcapRunResult, path: str | Path, *, overwrite: bool = False
-) -> Path:
-    """The 19 keypoints at 1000 Hz as C3D (mm; module doc).
-
-    Raises:
-        ViconFileError: ``path`` exists and ``overwrite`` is False, or the write failed.
-    """
-    from mocaprig.calib.c3d_write import write_c3d
-    from mocaprig.calib.vicon_records import MarkerTrajectories
-
-    pos = result.keypoints_m
-    traj = MarkerTrajectories(
-        labels=tuple(EVENTCAP_KEYPOINTS),
-        rate_hz=_RATE_HZ,
-        positions_m=pos,
-        residuals_m=np.zeros(pos.shape[:2]),
-        first_frame=1,
-        source_unit="mm",
-        source=str(result.session),
-        metadata={"software": "mocaprig eventcap run"},
-    )
-    return write_c3d(path, traj, unit="mm", overwrite=overwrite)
-
-
-def write_results_bvh(
-    result: EventcapRunResult, path: str | Path, *, overwrite: bool = False
-) -> Path:
-    """The poses at 1000 Hz as BVH on the template's skeleton (Y up, cm; module doc)."""
-    from mocaprig.process.body.bvh_export import write_bvh
-
-    return write_bvh(path, result.poses, result.shape, rate_hz=_RATE_HZ, overwrite=overwrite)
 
 
 _JOINT_RGBA: Final = (0.2, 0.5, 1.0, 1.0)
@@ -794,88 +819,224 @@ def template_scene(frame_id: str, t_ns: int, a_m: F64, b_m: F64, radius_m: F64) 
     return capsule_scene("eventcap_template", frame_id, t_ns, a_m, b_m, radius_m)
 
 
-def write_results_mcap(
-    result: EventcapRunResult,
-    path: str | Path,
-    *,
-    calibration: Calibration | None = None,
-    template: TemplateView = "capsules",
-    overwrite: bool = False,
-) -> Path:
-    """Write the run as a Foxglove MCAP (module doc): a SceneUpdate per 1 kHz frame and topic.
+class EventcapResultsWriter:
+    """The run's MCAP, C3D and BVH (module doc), written block by block as the batches finish.
+
+    Memory is bounded by a block: each :meth:`write` goes to the three files at once (the MCAP
+    through a :class:`~acquire.recorder.Recorder`, the C3D through
+    :class:`~calib.c3d_write.C3DFrameWriter`, the BVH through
+    :class:`~process.body.bvh_export.BvhWriter`). Every file is written beside its path and
+    moved into place when the ``with`` block ends without an error; on an error nothing is
+    left behind. Outputs given as None are not written.
+
+    Args:
+        header: What the files say about the run; ``header.frames`` frames must be written.
+        shape: The template (the BVH skeleton and the capsules).
+        mcap, c3d, bvh: Output paths (at least one).
+        calibration: Attached to the MCAP as ``calibration.toml``.
+        template: Draw the fitted capsules on :data:`TEMPLATE_TOPIC` (``"none"`` leaves it out).
+        overwrite: Replace existing outputs.
 
     Raises:
-        ProcessingError: ``path`` exists and ``overwrite`` is False, or the write failed.
+        ProcessingError: an output exists and ``overwrite`` is False, a write failed, or the
+            frames written are not ``header.frames``.
     """
-    from mocaprig import __version__
-    from mocaprig.calib.calibration import calibration_bytes
-    from mocaprig.process.body.surface import capsules
 
-    dst = Path(path)
-    if dst.exists() and not overwrite:
-        msg = f"{dst} exists; pass --overwrite to replace it"
-        raise ProcessingError(msg)
-    attachments = []
-    if calibration is not None:
-        attachments.append(
-            Attachment(ATTACHMENT_NAME, "application/toml", calibration_bytes(calibration))
-        )
-    meta_record = {
-        "software_version": __version__,
-        "session": str(result.session),
-        "davis": result.davis,
-        "batches": str(result.batches),
-        "frames": str(result.t_davis_us.size),
-        "rate_hz": f"{_RATE_HZ:g}",
-        "time_base": result.time_base,
-        "t_first_davis_us": str(int(result.t_davis_us[0])),
-        "world_frame": result.world_frame,
-        "detections": result.detection_source,
-    }
-    frame = result.world_frame
-    # The recorder's own diagnostics are stamped on the results' clock: one time base.
-    now = [int(result.t_out_ns[0])]
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.part")
-    with_caps = template == "capsules"
-    try:
-        with Recorder(
-            tmp,
-            metadata={METADATA_NAME: meta_record},
-            attachments=attachments,
-            clock_ns=lambda: now[0],
-            min_free_disk_bytes=0,
-        ) as rec:
-            log = f"{result.time_base} ns"
-            meta = {"frame_id": frame, "units": "m", "log_time": log}
-            hj = rec.add_stream(
-                JOINTS_TOPIC, SceneUpdateMsg, metadata={**meta, "content": "joints"}
-            )
-            ht = (
-                rec.add_stream(
-                    TEMPLATE_TOPIC, SceneUpdateMsg, metadata={**meta, "content": "template"}
+    def __init__(
+        self,
+        header: ResultsHeader,
+        shape: BodyShape,
+        *,
+        mcap: str | Path | None = None,
+        c3d: str | Path | None = None,
+        bvh: str | Path | None = None,
+        calibration: Calibration | None = None,
+        template: TemplateView = "capsules",
+        overwrite: bool = False,
+    ) -> None:
+        from mocaprig.calib.c3d_write import C3DFrameWriter
+        from mocaprig.calib.calibration import calibration_bytes
+        from mocaprig.process.body.bvh_export import BvhWriter
+
+        if mcap is None and c3d is None and bvh is None:
+            msg = "EventcapResultsWriter: give at least one of mcap, c3d, bvh"
+            raise ValidationError(msg)
+        if template not in ("capsules", "none"):
+            msg = f"template must be 'capsules' or 'none', got {template!r}"
+            raise ValidationError(msg)
+        self.header = header
+        self._shape = shape
+        self._overwrite = overwrite
+        self._written = 0
+        self._t_first_ns: int | None = None
+        self._closed = False
+        self._c3d: C3DFrameWriter | None = None
+        self._bvh: BvhWriter | None = None
+        self._rec: Recorder | None = None
+        self._mcap = None if mcap is None else Path(mcap)
+        for p in (self._mcap,):
+            if p is not None and p.exists() and not overwrite:
+                msg = f"{p} exists; pass --overwrite to replace it"
+                raise ProcessingError(msg)
+        try:
+            if c3d is not None:
+                self._c3d = C3DFrameWriter(
+                    c3d,
+                    labels=tuple(EVENTCAP_KEYPOINTS),
+                    rate_hz=_RATE_HZ,
+                    unit="mm",
+                    source=str(header.session),
+                    overwrite=overwrite,
                 )
-                if with_caps
-                else None
-            )
-            for i in range(result.t_out_ns.size):
-                t = int(result.t_out_ns[i])
-                now[0] = t
-                rec.put_wait(
-                    hj, keypoint_scene(frame, t, result.keypoints_m[i]), log_time_ns=t, sequence=i
+            if bvh is not None:
+                self._bvh = BvhWriter(bvh, shape, rate_hz=_RATE_HZ, overwrite=overwrite)
+            if self._mcap is not None:
+                attachments = []
+                if calibration is not None:
+                    attachments.append(
+                        Attachment(
+                            ATTACHMENT_NAME, "application/toml", calibration_bytes(calibration)
+                        )
+                    )
+                self._tmp = self._mcap.with_name(f".{self._mcap.name}.{os.getpid()}.part")
+                # The recorder's own diagnostics are stamped on the results' clock: one time
+                # base (the first frame's time until the first block arrives).
+                self._now = [0]
+                self._rec = Recorder(
+                    self._tmp,
+                    metadata={METADATA_NAME: header.record()},
+                    attachments=attachments,
+                    clock_ns=lambda: self._now[0],
+                    min_free_disk_bytes=0,
                 )
-                if ht is not None:
-                    # Posed a block at a time: the capsules of a long take are not all held.
-                    k = i % _CAPSULE_BLOCK
-                    if k == 0:
-                        caps = capsules(result.poses[i : i + _CAPSULE_BLOCK], result.shape)
-                    scene = template_scene(frame, t, caps.a_m[k], caps.b_m[k], caps.radius_m)
-                    rec.put_wait(ht, scene, log_time_ns=t, sequence=i)
-        replace_atomically(tmp, dst, overwrite=overwrite)
-    except ProcessingError:
-        raise
-    except Exception as err:
-        tmp.unlink(missing_ok=True)
-        msg = f"{dst}: writing the results failed ({err}); check the folder and free space"
-        raise ProcessingError(msg) from err
-    _log.info("wrote %s (%d frames)", dst, result.t_out_ns.size)
-    return dst
+                self._rec.start()
+                meta = {
+                    "frame_id": header.world_frame,
+                    "units": "m",
+                    "log_time": f"{header.time_base} ns",
+                }
+                self._hj = self._rec.add_stream(
+                    JOINTS_TOPIC, SceneUpdateMsg, metadata={**meta, "content": "joints"}
+                )
+                self._ht = (
+                    self._rec.add_stream(
+                        TEMPLATE_TOPIC, SceneUpdateMsg, metadata={**meta, "content": "template"}
+                    )
+                    if template == "capsules"
+                    else None
+                )
+        except Exception as err:
+            self.discard()
+            if isinstance(err, (ProcessingError, ValidationError)):
+                raise
+            msg = f"cannot start the results files ({err}); check the folder and free space"
+            raise ProcessingError(msg) from err
+
+    def __enter__(self) -> EventcapResultsWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()
+
+    @property
+    def frames_written(self) -> int:
+        """Tracking frames written so far."""
+        return self._written
+
+    @property
+    def t_first_ns(self) -> int:
+        """The first written frame's time (ns on the header's time base)."""
+        if self._t_first_ns is None:
+            msg = "no results were written"
+            raise ProcessingError(msg)
+        return self._t_first_ns
+
+    def write(self, t_ns: npt.ArrayLike, poses: F64, keypoints_m: F64) -> None:
+        """Append tracking frames: times ``(n,)`` ns on the header's time base, increasing;
+        poses ``(n, 33)``; keypoints ``(n, 19, 3)`` world m."""
+        from mocaprig.process.body.surface import capsules
+
+        t = np.asarray(t_ns, dtype=np.int64)
+        n = t.size
+        if poses.shape != (n, POSE_DIM) or keypoints_m.shape != (n, len(EVENTCAP_KEYPOINTS), 3):
+            msg = (
+                f"results block: {n} times, poses {poses.shape}, keypoints {keypoints_m.shape}; "
+                "expected (n,), (n, 33), (n, 19, 3)"
+            )
+            raise ValidationError(msg)
+        if n == 0:
+            return
+        if self._t_first_ns is None:
+            self._t_first_ns = int(t[0])
+        try:
+            if self._c3d is not None:
+                self._c3d.write(keypoints_m)
+            if self._bvh is not None:
+                self._bvh.write(poses)
+            if self._rec is not None:
+                frame = self.header.world_frame
+                for i0 in range(0, n, _CAPSULE_BLOCK):
+                    i1 = min(i0 + _CAPSULE_BLOCK, n)
+                    caps = capsules(poses[i0:i1], self._shape) if self._ht is not None else None
+                    for i in range(i0, i1):
+                        ti = int(t[i])
+                        self._now[0] = ti
+                        seq = self._written + i
+                        scene = keypoint_scene(frame, ti, keypoints_m[i])
+                        self._rec.put_wait(self._hj, scene, log_time_ns=ti, sequence=seq)
+                        if self._ht is not None and caps is not None:
+                            k = i - i0
+                            cap = template_scene(frame, ti, caps.a_m[k], caps.b_m[k], caps.radius_m)
+                            self._rec.put_wait(self._ht, cap, log_time_ns=ti, sequence=seq)
+        except Exception as err:
+            self.discard()
+            if isinstance(err, (ProcessingError, ValidationError)):
+                raise
+            msg = f"writing the results failed ({err}); check the folder and free space"
+            raise ProcessingError(msg) from err
+        self._written += n
+
+    def close(self) -> None:
+        """Finish the files and move them into place (all or none)."""
+        if self._closed:
+            return
+        if self._written != self.header.frames:
+            self.discard()
+            msg = (
+                f"the results hold {self._written} tracking frames, but the run announced "
+                f"{self.header.frames}; nothing was written"
+            )
+            raise ProcessingError(msg)
+        try:
+            if self._rec is not None:
+                self._rec.close()
+                self._rec.raise_if_failed()
+            if self._c3d is not None:
+                self._c3d.close()
+            if self._bvh is not None:
+                self._bvh.close()
+            if self._rec is not None and self._mcap is not None:
+                replace_atomically(self._tmp, self._mcap, overwrite=self._overwrite)
+                _log.info("wrote %s (%d frames)", self._mcap, self._written)
+        except Exception as err:
+            self.discard()
+            if isinstance(err, ProcessingError):
+                raise
+            msg = f"finishing the results failed ({err}); check the folder and free space"
+            raise ProcessingError(msg) from err
+        self._closed = True
+
+    def discard(self) -> None:
+        """Stop and remove every partial file (nothing new is left at the output paths)."""
+        self._closed = True
+        if self._rec is not None:
+            with contextlib.suppress(Exception):
+                self._rec.close()
+            self._tmp.unlink(missing_ok=True)
+        if self._c3d is not None:
+            self._c3d.discard()
+        if self._bvh is not None:
+            self._bvh.discard()

@@ -139,29 +139,27 @@ def test_eventcap_results_keep_every_message_on_the_output_clock(tmp_path: Path)
         neutral_pose,
     )
     from mocaprig.process.body.shape import BodyShape
-    from mocaprig.process.eventcap.run import EventcapRunResult, write_results_mcap
+    from mocaprig.process.eventcap.run import EventcapResultsWriter, ResultsHeader
 
     shape = BodyShape.from_height(1.75)
     frames = 4
     poses = np.repeat(neutral_pose(shape)[None], frames, axis=0)
     t_us = 20_000 + 1000 * np.arange(frames, dtype=np.int64)
-    result = EventcapRunResult(
+    header = ResultsHeader(
         session=tmp_path / "session.mcap",
-        outputs={},
         davis="davis/1",
-        frames_total=frames,
-        frames_used=frames,
-        t_davis_us=t_us,
-        t_out_ns=t_us * 1000 + 7,
+        batches=1,
+        frames=frames,
         time_base="vicon",
+        t_first_davis_us=int(t_us[0]),
         world_frame="vicon",
-        poses=poses,
-        keypoints_m=eventcap_keypoints(forward_kinematics(poses, shape), shape),
-        shape=shape,
         detection_source="synthetic",
     )
-    path = write_results_mcap(result, tmp_path / "eventcap.mcap")
-    _assert_one_clock(path, int(result.t_out_ns[0]), int(result.t_out_ns[-1]))
+    path = tmp_path / "eventcap.mcap"
+    t_ns = t_us * 1000 + 7
+    with EventcapResultsWriter(header, shape, mcap=path) as writer:
+        writer.write(t_ns, poses, eventcap_keypoints(forward_kinematics(poses, shape), shape))
+    _assert_one_clock(path, int(t_ns[0]), int(t_ns[-1]))
 
 
 def test_a_mock_rig_recording_keeps_every_stream_on_unix_time(tmp_path: Path) -> None:

@@ -45,7 +45,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[LayoutUse, Path]:
     )
     from mocaprig.process.body.shape import BodyShape
     from mocaprig.process.democap.replay import ReplayResult, write_scene_mcap
-    from mocaprig.process.eventcap.run import EventcapRunResult, write_results_mcap
+    from mocaprig.process.eventcap.run import EventcapResultsWriter, ResultsHeader
 
     d = tmp_path_factory.mktemp("layouts")
     rec = d / "session.mcap"
@@ -72,21 +72,19 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[LayoutUse, Path]:
     shape = BodyShape.from_height(1.75)
     poses = np.repeat(neutral_pose(shape)[None], n, axis=0)
     t_us = 20_000 + 1000 * np.arange(n, dtype=np.int64)
-    run = EventcapRunResult(
+    header = ResultsHeader(
         session=rec,
-        outputs={},
         davis=f"davis/{DAVIS}",
-        frames_total=n,
-        frames_used=n,
-        t_davis_us=t_us,
-        t_out_ns=t_us * 1000,
+        batches=1,
+        frames=n,
         time_base="vicon",
+        t_first_davis_us=int(t_us[0]),
         world_frame="vicon",
-        poses=poses,
-        keypoints_m=eventcap_keypoints(forward_kinematics(poses, shape), shape),
-        shape=shape,
     )
-    eventcap = write_results_mcap(run, d / "eventcap.mcap")
+    eventcap = d / "eventcap.mcap"
+    with EventcapResultsWriter(header, shape, mcap=eventcap) as writer:
+        kp = eventcap_keypoints(forward_kinematics(poses, shape), shape)
+        writer.write(t_us * 1000, poses, kp)
     return {"recording": rec, "calibration": calibrated, "democap": democap, "eventcap": eventcap}
 
 

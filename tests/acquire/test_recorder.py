@@ -293,7 +293,9 @@ def test_sigterm_finishes_the_file(tmp_path: Path) -> None:
     assert proc.wait(20) == 0
     with Recording(p) as r:
         assert r.indexed
-        assert r.metadata()["mocaprig.summary"]["stop_reason"] == "requested"
+        assert r.metadata()["mocaprig.summary"]["stop_reason"] == "signal"
+        (fault,) = [m.decode() for m in r.messages("/faults")]
+    assert fault.message.startswith("signal: SIGTERM")
 
 
 def test_truncated_file_reads_complete_chunks_and_reports_the_tail(tmp_path: Path) -> None:
@@ -356,7 +358,7 @@ def test_small_filesystem_margin_stops_cleanly(small_fs: Path) -> None:
         assert sum(1 for _ in r.messages("/d415/1/depth")) > 5
 
 
-def test_small_filesystem_enospc_is_a_clear_error_and_chunks_stay_readable(
+def test_small_filesystem_enospc_ends_the_file_at_its_last_record_with_the_fault(
     small_fs: Path,
 ) -> None:
     p = small_fs / "a.mcap"
@@ -371,8 +373,13 @@ def test_small_filesystem_enospc_is_a_clear_error_and_chunks_stay_readable(
     rec.start()
     _fill(rec)
     rec.close()
-    assert rec.stop_reason is StopReason.WRITE_ERROR
-    with pytest.raises(RecordingError, match="recover"):
+    assert rec.stop_reason is StopReason.DISK_FULL
+    with pytest.raises(RecordingError, match=r"the disk is full .*recover"):
         rec.raise_if_failed()
-    with Recording(p) as r:  # no room for the summary: read linearly
+    # The partial chunk is cut off, which frees room for the ending (no index, the fault).
+    inf = info(p)
+    assert not inf.scan.truncated
+    assert inf.stop_reason == "disk-full"
+    assert [f.kind for f in inf.faults] == ["disk-full"]
+    with Recording(p) as r:  # no index: read linearly
         assert sum(1 for _ in r.messages("/d415/1/depth")) > 5

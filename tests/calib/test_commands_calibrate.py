@@ -32,6 +32,27 @@ def test_calibrate_vicon_refuses_a_bad_output_suffix(
     assert ".toml or .json" in capsys.readouterr().err
 
 
+def test_calibrate_vicon_passes_the_timing_assumptions_to_the_calibration(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import mocaprig.calib.vicon_calibration as vc
+    from mocaprig.errors import CalibrationError
+
+    seen: list[vc.CalibrationOptions] = []
+
+    def fake(*args: object, options: vc.CalibrationOptions, **kw: object) -> None:
+        seen.append(options)
+        raise CalibrationError("stop here")
+
+    monkeypatch.setattr(vc, "calibrate_vicon", fake)
+    base = ["calibrate", "vicon", "s.mcap", "v.c3d", "--out", str(tmp_path / "c.toml")]
+    assert main(base) == 1
+    assert main([*base, "--sync-latency-us", "12.5", "--no-measure-pulse-phase"]) == 1
+    assert "stop here" in capsys.readouterr().err
+    assert (seen[0].sync_latency_us, seen[0].measure_pulse_phase) == (2.0, True)
+    assert (seen[1].sync_latency_us, seen[1].measure_pulse_phase) == (12.5, False)
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 4 s simulated session (seed 5, two D415s, the DAVIS without DVS: APS, IMU and the
@@ -80,12 +101,18 @@ def test_calibrate_vicon_then_evaluate_meets_the_acceptance(
             read_calibration(cal)
         )
         assert any(t.endswith("/ir") for t in rec.topics)
+    pages = ["index.html", "summary.json"]
     assert sorted(p.name for p in report.iterdir()) == sorted(
-        Path(f).name for f in summary["figures"]
+        [*(Path(f).name for f in summary["figures"]), *pages]
     )
-    kinds = sorted({Path(f).name.split("_")[0] for f in summary["figures"]})
-    assert kinds == ["clock", "overlay", "reprojection", "residuals", "vicon"]
-    assert len(summary["figures"]) == 2 * 3 + 2
+    assert summary["report"] == str(report / "index.html")
+    kinds = sorted({Path(f).stem.split("_")[0] for f in summary["figures"]})
+    assert kinds == ["clock", "clocks", "overlay", "reprojection", "residuals", "rig", "vicon"]
+    assert len(summary["figures"]) == 2 * 3 + 4
+    page = (report / "index.html").read_text(encoding="utf-8")
+    assert all(f'src="{Path(f).name}"' in page for f in summary["figures"])
+    shown = json.loads((report / "summary.json").read_text(encoding="utf-8"))
+    assert shown["cameras"] == summary["cameras"]
 
     # Outputs are never silently replaced.
     assert main(argv) == 1

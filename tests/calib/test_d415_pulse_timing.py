@@ -179,8 +179,10 @@ def readout_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _calibrate(world: Path, pulse_at: str) -> tuple[ViconCalibrationResult, Evaluation]:
-    opt = CalibrationOptions(d415_pulse_at=pulse_at)  # type: ignore[arg-type]
+def _calibrate(
+    world: Path, pulse_at: str, *, measure: bool = True
+) -> tuple[ViconCalibrationResult, Evaluation]:
+    opt = CalibrationOptions(d415_pulse_at=pulse_at, measure_pulse_phase=measure)  # type: ignore[arg-type]
     result = calibrate_vicon(world / "session.mcap", world / "vicon" / "session.c3d", options=opt)
     return result, evaluate_calibration(result.calibration, world)
 
@@ -229,7 +231,7 @@ def test_readout_start_world_with_the_matching_convention_meets_the_targets(
 def test_readout_start_world_with_the_wrong_convention_is_one_exposure_out(
     readout_world: Path,
 ) -> None:
-    result, ev = _calibrate(readout_world, "exposure-start")
+    result, ev = _calibrate(readout_world, "exposure-start", measure=False)
     assert result.calibration.statistics["d415_pulse_at_readout_start"] == 0.0
     master, slave, davis = _roles(result)
     errors = {d.device: d for d in ev.devices}
@@ -244,3 +246,18 @@ def test_readout_start_world_with_the_wrong_convention_is_one_exposure_out(
     assert abs(errors[davis].clock_offset_error_ms) < 0.05
     # Drifts do not depend on the convention.
     assert all(abs(d.drift_error_ppm) < 1.0 for d in ev.devices), ev.devices
+
+
+@pytest.mark.slow
+def test_a_wrong_assumed_convention_is_corrected_by_the_measured_pulse_phase(
+    readout_world: Path,
+) -> None:
+    """The default measures the phase: assuming the exposure start on a readout-start world,
+    the video and the sync channel pick the readout start and the clocks are right."""
+    result, ev = _calibrate(readout_world, "exposure-start")
+    assert result.calibration.statistics["d415_pulse_at_readout_start"] == 1.0
+    assert any("pulse phase" in n and "readout start" in n for n in result.notes), result.notes
+    master, _, davis = _roles(result)
+    errors = {d.device: d for d in ev.devices}
+    assert abs(errors[master].clock_offset_error_ms) < 0.02, errors[master]
+    assert abs(errors[davis].clock_error_vs_via_us) < 50.0, errors[davis]

@@ -88,6 +88,14 @@ def test_demo_command_reports_figures_against_truth(
     assert report["stages"]["eventcap_run"].startswith("skipped")
     assert not any(state.startswith("pending") for state in report["stages"].values())
     assert Path(report["figure"]).stat().st_size > 10_000
+    # The replayed skeleton against the truth, and the calibration report beside the JSON.
+    assert report["skeleton_figure"] == rp["skeleton_figure"] == str(out / "democap_skeleton.png")
+    assert Path(report["skeleton_figure"]).stat().st_size > 10_000
+    index = Path(report["calibration_report"])
+    assert index == out / "calibration_report" / "index.html" == Path(cal["report"])
+    assert all(Path(f).parent == index.parent for f in cal["report_figures"])
+    assert {"rig_3d.png", "clocks.png"} <= {Path(f).name for f in cal["report_figures"]}
+    assert (index.parent / "summary.json").is_file()
     on_disk = json.loads(Path(report["report"]).read_text(encoding="utf-8"))
     assert on_disk["figures"]["vicon_frames"] == figures["vicon_frames"]
 

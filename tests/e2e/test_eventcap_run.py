@@ -1,11 +1,11 @@
 """``mocaprig eventcap run`` end to end on a recording made by ``mocaprig simulate``.
 
-One 3 s karate session with the DAVIS and its DVS (``--devices davis --davis-dvs``, the slow
-part: ~40 s), synthetic detections and the DAVIS's true calibration from the simulator
-(``drivers_mock.eventcap_session``), then two batches of EventCap from 1.0 s of the DAVIS
-timeline (past the static start). The results are read back: the MCAP with our reader and
-TypeScript ``@mcap/core`` (tests/compat, skipped visibly without node), the C3D with ezc3d, the
-BVH with our BVH reader.
+One 3 s karate session with the DAVIS and its DVS (``karate_session`` of tests/e2e/conftest.py,
+shared with the ``mocaprig process`` tests; the slow part), synthetic detections and the
+DAVIS's true calibration from the simulator (``drivers_mock.eventcap_session``), then two
+batches of EventCap from 1.0 s of the DAVIS timeline (past the static start). The results
+are read back: the MCAP with our reader and TypeScript ``@mcap/core`` (tests/compat, skipped
+visibly without node), the C3D with ezc3d, the BVH with our BVH reader.
 """
 
 from __future__ import annotations
@@ -34,16 +34,15 @@ START_S = 1.0
 @dataclass(frozen=True)
 class _Run:
     root: Path
+    sim: Path
     summary: dict[str, Any]
     stderr: str
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> _Run:
+def run(tmp_path_factory: pytest.TempPathFactory, karate_session: Path) -> _Run:
     root = tmp_path_factory.mktemp("eventcap-run")
-    sim = root / "sim"
-    args = ["simulate", "--scenario", "karate", "--seed", "2", "--seconds", "3"]
-    assert main([*args, "--devices", "davis", "--davis-dvs", "--out", str(sim), "--json"]) == 0
+    sim = karate_session
     write_session_inputs(
         sim,
         detections_path=root / "detections.json",
@@ -77,7 +76,7 @@ def _run_cli(root: Path, sim: Path) -> _Run:
             ]
         )
     assert code == 0, err.getvalue()
-    return _Run(root, json.loads(out.getvalue()), err.getvalue())
+    return _Run(root, sim, json.loads(out.getvalue()), err.getvalue())
 
 
 def test_run_writes_1khz_joints_close_to_the_truth(run: _Run) -> None:
@@ -99,7 +98,7 @@ def test_run_writes_1khz_joints_close_to_the_truth(run: _Run) -> None:
     pts = c["data"]["points"][:3].transpose(2, 1, 0) / 1e3  # (T, 19, 3) m
     assert pts.shape == (s["tracking_frames"], 19, 3)
     t_us = s["t_first_davis_us"] + 1000 * np.arange(pts.shape[0])
-    truth = read_session_truth(run.root / "sim").keypoints_at(t_us)
+    truth = read_session_truth(run.sim).keypoints_at(t_us)
     err_mm = 1e3 * np.linalg.norm(pts[:, :15] - truth[:, :15], axis=-1)
     # Measured (seed 2, from 1.02 s): mean 43.5 mm over the 15 body joints and both batches
     # (36.0 and 50.8 mm). Detection a of the first batch is a left/right swap of the synthetic

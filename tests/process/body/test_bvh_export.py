@@ -11,6 +11,7 @@ from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body.bvh import bvh_global_positions, parse_bvh, read_bvh
 from mocaprig.process.body.bvh_export import (
     Y_UP_FROM_Z_UP,
+    BvhWriter,
     bvh_joint_name,
     bvh_text,
     write_bvh,
@@ -89,3 +90,31 @@ def test_bad_poses_are_rejected() -> None:
     q[1, 4] = np.nan
     with pytest.raises(ValidationError):
         bvh_text(q, shape, rate_hz=100.0)
+
+
+def test_bvh_written_in_blocks_is_the_text_of_all_poses(tmp_path: Path) -> None:
+    shape = BodyShape.from_height(1.7)
+    q = _poses(7, frames=7)
+    path = tmp_path / "blocks.bvh"
+    with BvhWriter(path, shape, rate_hz=1000.0) as w:
+        for i0, i1 in ((0, 3), (3, 4), (4, 7)):
+            w.write(q[i0:i1])
+    assert path.read_text() == bvh_text(q, shape, rate_hz=1000.0)
+    assert [p.name for p in tmp_path.iterdir()] == ["blocks.bvh"]  # no partial files left
+
+
+def test_an_interrupted_bvh_leaves_no_file(tmp_path: Path) -> None:
+    shape = BodyShape.from_height(1.7)
+
+    def interrupted() -> None:
+        with BvhWriter(tmp_path / "r.bvh", shape, rate_hz=100.0) as w:
+            w.write(_poses(2, frames=2))
+            raise RuntimeError("stopped")
+
+    with pytest.raises(RuntimeError, match="stopped"):
+        interrupted()
+    assert list(tmp_path.iterdir()) == []
+    empty = BvhWriter(tmp_path / "e.bvh", shape, rate_hz=100.0)
+    with pytest.raises(ValidationError, match="no poses"):
+        empty.close()
+    assert list(tmp_path.iterdir()) == []

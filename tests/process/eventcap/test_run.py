@@ -4,7 +4,7 @@ is solved here; tests/e2e/test_eventcap_run.py runs the whole command on a simul
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,17 +38,18 @@ from mocaprig.process.eventcap.detections import Detection, write_detections_jso
 from mocaprig.process.eventcap.run import (
     JOINTS_TOPIC,
     KEYPOINT_BONES,
+    METADATA_NAME,
     TEMPLATE_TOPIC,
+    EventcapResultsWriter,
     EventcapRunResult,
     RecordingEventSource,
     RecordingFrames,
+    ResultsHeader,
     keypoint_scene,
     load_detector,
     load_shape,
     run_eventcap,
     select_davis,
-    write_results_c3d,
-    write_results_mcap,
 )
 from mocaprig.process.eventcap.take import array_source
 
@@ -262,27 +263,50 @@ def test_existing_outputs_are_not_overwritten(
     assert (tmp_path / "res.bvh").read_text() == "keep"
 
 
-def _result(tmp_path: Path, frames: int = 5) -> EventcapRunResult:
+@dataclass(frozen=True)
+class _Track:
+    header: ResultsHeader
+    shape: BodyShape
+    t_ns: np.ndarray
+    poses: np.ndarray
+    keypoints_m: np.ndarray
+
+
+def _track(tmp_path: Path, frames: int = 5) -> _Track:
     shape = BodyShape.from_height(1.75)
     poses = np.repeat(neutral_pose(shape)[None], frames, axis=0)
     poses[:, 3] += np.linspace(0.0, 0.004, frames)  # 1 m/s along x
     kp = eventcap_keypoints(forward_kinematics(poses, shape), shape)
     t_us = 20_000 + 1000 * np.arange(frames, dtype=np.int64)
-    return EventcapRunResult(
+    header = ResultsHeader(
         session=tmp_path / "session.mcap",
-        outputs={},
         davis=f"davis/{SERIAL}",
-        frames_total=10,
-        frames_used=2,
-        t_davis_us=t_us,
-        t_out_ns=t_us * 1000 + 7,
+        batches=1,
+        frames=frames,
         time_base="vicon",
+        t_first_davis_us=int(t_us[0]),
         world_frame="vicon",
-        poses=poses,
-        keypoints_m=kp,
-        shape=shape,
         detection_source="synthetic",
     )
+    return _Track(header, shape, t_us * 1000 + 7, poses, kp)
+
+
+def _write(
+    tr: _Track,
+    blocks: list[int],
+    *,
+    mcap: Path | None = None,
+    c3d: Path | None = None,
+    bvh: Path | None = None,
+) -> None:
+    cal = _calibration()
+    with EventcapResultsWriter(
+        tr.header, tr.shape, mcap=mcap, c3d=c3d, bvh=bvh, calibration=cal
+    ) as w:
+        i = 0
+        for n in blocks:
+            w.write(tr.t_ns[i : i + n], tr.poses[i : i + n], tr.keypoints_m[i : i + n])
+            i += n
 
 
 def test_results_mcap_holds_one_scene_per_tracking_frame_and_topic(
@@ -290,50 +314,91 @@ def test_results_mcap_holds_one_scene_per_tracking_frame_and_topic(
 ) -> None:
     import mocaprig.process.eventcap.run as run_module
 
-    monkeypatch.setattr(run_module, "_CAPSULE_BLOCK", 2)  # blocks of 2 frames: 2, 2, 1
-    res = _result(tmp_path)
-    path = write_results_mcap(res, tmp_path / "r.mcap", calibration=_calibration())
+    monkeypatch.setattr(run_module, "_CAPSULE_BLOCK", 2)  # capsules posed 2 frames at a time
+    tr = _track(tmp_path)
+    path = tmp_path / "r.mcap"
+    _write(tr, [3, 2], mcap=path)
     with Recording(path) as rec:
         joints = list(rec.decoded(JOINTS_TOPIC))
         template = list(rec.decoded(TEMPLATE_TOPIC))
         assert "calibration.toml" in [a.name for a in rec.attachments()]
-    assert [t for t, _ in joints] == res.t_out_ns.tolist()
+        assert rec.metadata()[METADATA_NAME]["frames"] == "5"
+    assert [t for t, _ in joints] == tr.t_ns.tolist()
     assert len(template) == 5
     first = joints[0][1]
     assert isinstance(first, SceneUpdateMsg)
     ent = first.update.entities[0]
     assert len(ent.spheres) == 19
     assert len(ent.lines[0].points) == 2 * len(KEYPOINT_BONES)
-    assert ent.spheres[0].pose.position.x == pytest.approx(res.keypoints_m[0, 0, 0])
-    assert ent.timestamp.ToNanoseconds() == res.t_out_ns[0]
-    caps = template[-1][1].update.entities[0]
-    assert len(caps.cylinders) > 10
-    assert len(caps.spheres) == 2 * len(caps.cylinders)
-    want = capsules(res.poses[-1], res.shape)
-    first_end = caps.spheres[0].pose.position
-    np.testing.assert_allclose([first_end.x, first_end.y, first_end.z], want.a_m[0], atol=1e-12)
+    assert ent.spheres[0].pose.position.x == pytest.approx(tr.keypoints_m[0, 0, 0])
+    assert ent.timestamp.ToNanoseconds() == tr.t_ns[0]
+    for k in (2, 4):  # the first frame of a block and the last frame
+        caps = template[k][1].update.entities[0]
+        assert len(caps.cylinders) > 10
+        assert len(caps.spheres) == 2 * len(caps.cylinders)
+        want = capsules(tr.poses[k], tr.shape)
+        end = caps.spheres[0].pose.position
+        np.testing.assert_allclose([end.x, end.y, end.z], want.a_m[0], atol=1e-12)
     with pytest.raises(ProcessingError, match="--overwrite"):
-        write_results_mcap(res, path)
+        _write(tr, [5], mcap=path)
+
+
+def test_results_written_in_blocks_equal_the_results_written_at_once(tmp_path: Path) -> None:
+    tr = _track(tmp_path, frames=7)
+    one = {k: tmp_path / f"one.{k}" for k in ("mcap", "c3d", "bvh")}
+    many = {k: tmp_path / f"many.{k}" for k in ("mcap", "c3d", "bvh")}
+    _write(tr, [7], **one)
+    _write(tr, [1, 4, 0, 2], **many)
+    assert one["c3d"].read_bytes() == many["c3d"].read_bytes()
+    assert one["bvh"].read_text() == many["bvh"].read_text()
+    with Recording(one["mcap"]) as a, Recording(many["mcap"]) as b:
+        for topic in (JOINTS_TOPIC, TEMPLATE_TOPIC):
+            assert [m.data for m in a.messages(topic)] == [m.data for m in b.messages(topic)]
+
+
+def test_results_that_miss_announced_frames_leave_no_file(tmp_path: Path) -> None:
+    tr = _track(tmp_path, frames=4)
+    paths = {k: tmp_path / f"r.{k}" for k in ("mcap", "c3d", "bvh")}
+    with pytest.raises(ProcessingError, match=r"3 tracking frames.*announced 4"):
+        _write(tr, [3], **paths)
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_failure_while_writing_results_leaves_no_file(tmp_path: Path) -> None:
+    tr = _track(tmp_path, frames=4)
+    paths = {k: tmp_path / f"r.{k}" for k in ("mcap", "c3d", "bvh")}
+
+    def run() -> None:
+        with EventcapResultsWriter(
+            tr.header, tr.shape, mcap=paths["mcap"], c3d=paths["c3d"], bvh=paths["bvh"]
+        ) as w:
+            w.write(tr.t_ns[:2], tr.poses[:2], tr.keypoints_m[:2])
+            raise RuntimeError("batch 2 failed")
+
+    with pytest.raises(RuntimeError, match="batch 2 failed"):
+        run()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_results_c3d_holds_the_19_keypoints_at_1000_hz_in_mm(tmp_path: Path) -> None:
     import ezc3d
 
-    res = _result(tmp_path)
-    path = write_results_c3d(res, tmp_path / "r.c3d")
+    tr = _track(tmp_path)
+    path = tmp_path / "r.c3d"
+    _write(tr, [2, 3], c3d=path)
     c = ezc3d.c3d(str(path))
     assert c["parameters"]["POINT"]["RATE"]["value"][0] == pytest.approx(1000.0)
     assert list(c["parameters"]["POINT"]["LABELS"]["value"]) == list(EVENTCAP_KEYPOINTS)
     pts = c["data"]["points"]  # (4, 19, F), mm
     assert pts.shape[1:] == (19, 5)
-    np.testing.assert_allclose(pts[:3].transpose(2, 1, 0), res.keypoints_m * 1e3, atol=1e-2)
+    np.testing.assert_allclose(pts[:3].transpose(2, 1, 0), tr.keypoints_m * 1e3, atol=1e-2)
 
 
 def test_keypoint_scene_names_its_spheres_and_leaves_the_input_unchanged(tmp_path: Path) -> None:
-    res = _result(tmp_path, frames=1)
-    kp = res.keypoints_m[0].copy()
+    tr = _track(tmp_path, frames=1)
+    kp = tr.keypoints_m[0].copy()
     scene = keypoint_scene("vicon", 5, kp)
-    np.testing.assert_array_equal(kp, res.keypoints_m[0])
+    np.testing.assert_array_equal(kp, tr.keypoints_m[0])
     names = scene.update.entities[0].metadata[0].value.split(",")
     assert names == list(EVENTCAP_KEYPOINTS)
 

@@ -11,8 +11,8 @@ from mocaprig.process.body.shape import BodyShape
 from mocaprig.process.eventcap.camera import EventCamera
 from mocaprig.process.eventcap.detections import SyntheticDetections
 from mocaprig.process.eventcap.evaluate import TakeWithTruth
-from mocaprig.process.eventcap.pipeline import ApsFrame
-from mocaprig.process.eventcap.take import array_source, run_take
+from mocaprig.process.eventcap.pipeline import ApsFrame, BatchResult
+from mocaprig.process.eventcap.take import array_source, iter_take, run_take
 
 CAMERA = EventCamera(
     K=np.array([[200.0, 0.0, 120.0], [0.0, 200.0, 90.0], [0.0, 0.0, 1.0]]),
@@ -86,3 +86,53 @@ def test_take_with_truth_maps_times_onto_its_millisecond_grid() -> None:
             truth_keypoints_m=np.zeros((3, 19, 3)),
             truth_keypoints_px=np.zeros((3, 19, 2)),
         )
+
+
+class _CountingFrames(list[ApsFrame]):
+    """Frames that record which index was asked for (the take must ask as it goes)."""
+
+    def __init__(self, frames: list[ApsFrame]) -> None:
+        super().__init__(frames)
+        self.asked: list[int] = []
+
+    def __getitem__(self, k):
+        self.asked.append(k)
+        return super().__getitem__(k)
+
+
+def test_iter_take_streams_batches_reporting_each_shared_frame_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import mocaprig.process.eventcap.take as take_module
+
+    starts: list[object] = []
+
+    def fake_batch(window, a, b, det_a, det_b, camera, shape, **kw):
+        # A stand-in for the solver: poses carry their frame time, so the stitching shows.
+        starts.append(kw["start_pose"])
+        t = np.arange(a.t_us, b.t_us + 1, 1000, dtype=np.int64)
+        poses = np.repeat(t[:, None].astype(float), 33, axis=1)
+        kp = np.repeat(poses[:, :19, None], 3, axis=2)
+        return BatchResult(t, poses, kp, (0.1, 0.1), 0, 0, 0, 0, "synthetic", None, {"edi": 0.0})  # type: ignore[arg-type]
+
+    monkeypatch.setattr(take_module, "run_batch", fake_batch)
+    img = np.zeros((180, 240))
+    frames = _CountingFrames([ApsFrame(t, t, img) for t in (0, 40_000, 80_000, 120_000)])
+    t_det = np.array([0, 40_000, 80_000, 120_000])
+    det = SyntheticDetections(t_det, np.full((4, 19, 2), 100.0), seed=0)
+    source = array_source(_events([]))
+    it = iter_take(source, frames, det, CAMERA, BodyShape.from_height(1.75))
+    first = next(it)
+    assert max(frames.asked) == 2  # frames a, b and the first batch's lookahead only
+    assert (first.batch, first.batches) == (0, 3)
+    assert first.t_us.tolist() == list(range(0, 40_000, 1000))  # its last frame is the next's
+    rest = list(it)
+    assert rest[-1].t_us[-1] == 120_000  # the take's last frame is reported
+    t = np.concatenate([first.t_us] + [c.t_us for c in rest])
+    np.testing.assert_array_equal(t, np.arange(0, 120_001, 1000))
+    np.testing.assert_array_equal(np.concatenate([first.poses] + [c.poses for c in rest])[:, 0], t)
+    assert starts[0] is None
+    assert [float(s[0]) for s in starts[1:]] == [40_000.0, 80_000.0]  # type: ignore[index]
+    whole = run_take(source, frames, det, CAMERA, BodyShape.from_height(1.75))
+    np.testing.assert_array_equal(whole.t_us, t)
+    assert len(whole.batches) == 3
