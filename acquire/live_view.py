@@ -21,8 +21,9 @@ alone, :class:`LiveClient` offers both):
 
 * every ``foxglove.RawImage`` stream (D415 IR ``mono8`` and depth ``16UC1``, DAVIS APS
   ``mono16``) on its recorded topic, decimated to ``image_hz`` per topic (the recorded bytes,
-  not encoded again); ``foxglove.CameraCalibration`` and ``foxglove.Log`` (``/log``,
-  ``/faults``) as recorded, the calibrations again at ``status_hz`` for clients that join late;
+  not encoded again); ``foxglove.CameraCalibration``, ``foxglove.Log`` (``/log``, ``/faults``)
+  and ``foxglove.SceneUpdate`` as recorded, the calibrations again at ``status_hz`` for clients
+  that join late;
 * ``<davis>/event_image``: the events of the last ``event_window_ms`` as an ``rgb8`` RawImage
   (ON green, OFF red, both yellow) at ``image_hz``;
 * ``<davis>/imu_live``: JSON ``{t_us, accel_g {x,y,z}, gyro_dps {x,y,z}, temp_c}`` (the last
@@ -73,7 +74,9 @@ _log = logging.getLogger(__name__)
 
 LIVE_STATUS_TOPIC: Final = "/live/status"
 _RAW_IMAGE: Final = ImageMsg.SCHEMA.name  # foxglove.RawImage
-_PASS_SCHEMAS: Final = frozenset({"foxglove.CameraCalibration", "foxglove.Log"})
+_PASS_SCHEMAS: Final = frozenset(
+    {"foxglove.CameraCalibration", "foxglove.Log", "foxglove.SceneUpdate"}
+)
 _Kind = Literal["image", "pass", "events", "imu", "ignore"]
 _IMU_SCHEMA: Final[dict[str, Any]] = {
     "title": "mocaprig.LiveImu",

@@ -125,6 +125,34 @@ def raw_disk_mb_per_s(folder: Path, total_mb: int = 768) -> float:
     return n * len(block) / wall / 1e6
 
 
+def start_producers(
+    rec: Recorder, streams: list[_Stream], handles: list[StreamHandle], stop: threading.Event
+) -> list[threading.Thread]:
+    """One started thread per stream putting its payloads at its rate on the wall clock
+    (``put()``, never blocking) until ``stop`` is set."""
+
+    def produce(s: _Stream, h: StreamHandle) -> None:
+        period = 1.0 / s.hz
+        start = time.perf_counter()
+        i = 0
+        while not stop.is_set():
+            due = start + i * period
+            now = time.perf_counter()
+            if due > now:
+                time.sleep(min(due - now, 0.05))
+                continue
+            rec.put(h, s.payloads[i % len(s.payloads)], sequence=i)
+            i += 1
+
+    threads = [
+        threading.Thread(target=produce, args=(s, h), daemon=True)
+        for s, h in zip(streams, handles, strict=True)
+    ]
+    for th in threads:
+        th.start()
+    return threads
+
+
 def record_cell(
     folder: Path,
     name: str,
@@ -146,26 +174,8 @@ def record_cell(
             rec.add_stream(s.topic, s.kind, queue_messages=s.queue_messages) for s in streams
         ]
 
-        def produce(s: _Stream, h: StreamHandle) -> None:
-            period = 1.0 / s.hz
-            start = time.perf_counter()
-            i = 0
-            while not stop.is_set():
-                due = start + i * period
-                now = time.perf_counter()
-                if due > now:
-                    time.sleep(min(due - now, 0.05))
-                    continue
-                rec.put(h, s.payloads[i % len(s.payloads)], sequence=i)
-                i += 1
-
-        threads = [
-            threading.Thread(target=produce, args=(s, h), daemon=True)
-            for s, h in zip(streams, handles, strict=True)
-        ]
         t0 = time.perf_counter()
-        for th in threads:
-            th.start()
+        threads = start_producers(rec, streams, handles, stop)
         time.sleep(seconds)
         stop.set()
         for th in threads:

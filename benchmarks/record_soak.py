@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from record_rig import _rig_streams, _Stream, record_cell
+from record_rig import _rig_streams, _Stream, record_cell, start_producers
 
 from mocaprig.acquire.recorder import Recorder, StreamHandle
 from mocaprig.acquire.recording import Recording
@@ -74,26 +74,8 @@ def soak(
             rec.add_stream(s.topic, s.kind, queue_messages=s.queue_messages) for s in streams
         ]
 
-        def produce(s: _Stream, h: StreamHandle) -> None:
-            period = 1.0 / s.hz
-            start = time.perf_counter()
-            i = 0
-            while not stop.is_set():
-                due = start + i * period
-                now = time.perf_counter()
-                if due > now:
-                    time.sleep(min(due - now, 0.05))
-                    continue
-                rec.put(h, s.payloads[i % len(s.payloads)], sequence=i)
-                i += 1
-
-        threads = [
-            threading.Thread(target=produce, args=(s, h), daemon=True)
-            for s, h in zip(streams, handles, strict=True)
-        ]
         t0 = time.perf_counter()
-        for th in threads:
-            th.start()
+        threads = start_producers(rec, streams, handles, stop)
         next_minute = 60.0
         while (elapsed := time.perf_counter() - t0) < seconds:
             samples.append((round(elapsed, 1), round(_rss_mb(), 1)))
@@ -179,8 +161,9 @@ def main() -> None:
         )
     samples = res.pop("samples")
     after = [rss for t, rss in samples if t >= 60.0]
-    base = after[0] if after else float("nan")
-    growth = (max(after) - base) / base if after else float("nan")
+    # None (not NaN, which is no JSON) for a soak shorter than a minute.
+    base = after[0] if after else None
+    growth = round((max(after) - after[0]) / after[0], 4) if after else None
     result = {
         "benchmark": "record_soak",
         "machine": f"{os.cpu_count()} cores {platform.machine()}, load {load_before[0]:.1f}",
@@ -193,7 +176,7 @@ def main() -> None:
         "rss_at_1min_mb": base,
         "rss_max_after_1min_mb": max(after) if after else None,
         "rss_last_mb": samples[-1][1] if samples else None,
-        "rss_growth_after_1min": round(growth, 4),
+        "rss_growth_after_1min": growth,
         "rss_trace_mb": samples[:: max(1, len(samples) // 60)],
     }
     print(json.dumps(result))
