@@ -260,6 +260,7 @@ def _demo(args: argparse.Namespace) -> int:
     d = f.get("democap", {})
     rp = f.get("democap_replay", {})
     lv = f.get("democap_live", {})
+    pr = f.get("process", {})
     ec = f.get("eventcap", {})
     er = f.get("eventcap_run", {})
     lines = [
@@ -330,6 +331,13 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  DeMoCap live: {lv.get('error', 'not run')}"
         ),
         (
+            f"  mocaprig process ({pr['engine']}): DeMoCap on 1 instant in {pr['every']}, "
+            f"{pr['instants']} instants, {pr['outputs']} files in {pr['seconds']:.1f} s; run "
+            f"again: {pr['rerun_kept']} kept, {pr['rerun_seconds']:.1f} s"
+            if "error" not in pr and pr
+            else f"  mocaprig process: {pr.get('error', 'not run')}"
+        ),
+        (
             f"  EventCap [{ec['protocol']}; {ec['detections']} detections] {ec['take']}, "
             f"{ec['batches']} batches: AE {ec['ours']['ae_mm']:.1f} mm (*_linear "
             f"{ec['linear']['ae_mm']:.1f}, *_all {ec['all']['ae_mm']:.1f}; ratio to linear "
@@ -351,6 +359,7 @@ def _demo(args: argparse.Namespace) -> int:
         f"  DeMoCap replay: {rp.get('results_mcap', '-')} (+ .c3d, .csv)",
         f"  DeMoCap live:   {lv.get('out', '-')}",
         f"  DeMoCap skeleton vs truth: {rp.get('skeleton_figure', '-')}",
+        f"  mocaprig process: {pr.get('out', '-')}",
         f"  EventCap run:   {er.get('outputs', {}).get('mcap', '-')} (+ .c3d, .bvh)",
         f"  calibration report: {report.calibration_report_path or '-'}",
         f"  summary figure: {report.figure_path}",

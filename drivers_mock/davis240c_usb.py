@@ -503,7 +503,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         serial: The 8-character serial string (string descriptor 3).
         faults: Faults to inject.
         fault: Faults by name (what ``mocaprig doctor --mock --fault davis:NAME`` passes):
-            ``"unplug"`` (gone 150 ms into streaming) and ``"usb-bandwidth"`` (a 200 kB/s link:
+            ``"unplug"`` (gone 20 ms into streaming) and ``"usb-bandwidth"`` (a 200 kB/s link:
             DVS events dropped on the device); combined with ``faults``.
         pacing: ``"asap"`` or ``"realtime"``.
         chunk_us: Device µs simulated per step (≈ the 1 ms early-packet delay, note §1.3).
@@ -1115,7 +1115,9 @@ def _simulator_source(world: Scenario) -> DavisActivitySource:
 
 #: Faults by name: the :class:`DavisFaults` fields each one sets.
 NAMED_FAULTS: dict[str, dict[str, Any]] = {
-    "unplug": {"unplug_at_us": 150_000},
+    # Early: the simulated world renders slower than real time, so a check that streams for a
+    # second of wall time may see only tens of milliseconds of device time.
+    "unplug": {"unplug_at_us": 20_000},
     "usb-bandwidth": {"bandwidth_bytes_per_s": 2.0e5},
 }
 

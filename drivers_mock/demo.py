@@ -3,24 +3,25 @@
 It runs the whole toolkit as far as it exists and reports its figures against ground truth.
 Today: simulate a session (truth + Vicon C3D/CSV) -> record it through the real drivers talking
 to the mock devices (``session.mcap``; :func:`drivers_mock.session.record_session`) -> ``info``
-on the recording, the D415 sync check (:class:`mocaprig.acquire.d415_sync.SyncChecker`) over the
-recorded frame timing, the DAVIS decode statistics and the pairing of the DAVIS trigger pulses
-with the D415 master's frames -> read the Vicon exports back through the product reader
-(:mod:`mocaprig.calib.vicon`) -> compare with the truth -> calibrate the D415s and the DAVIS clock
-against the Vicon trial (:mod:`calib.vicon_calibration`), write its report
+on the recording, the D415 sync check (:class:`mocaprig.acquire.d415_sync.SyncChecker`) over
+the recorded frame timing, the DAVIS decode statistics and the pairing of the DAVIS trigger
+pulses with the D415 master's frames -> read the Vicon exports back through the product reader
+(:mod:`mocaprig.calib.vicon`) -> compare with the truth -> calibrate the D415s and the DAVIS
+clock against the Vicon trial (:mod:`calib.vicon_calibration`), write its report
 (:data:`CALIBRATION_REPORT`: figures beside the JSON, :mod:`calib.report`) and score the
 calibration against the truth -> DeMoCap figures of the committed ``lite`` checkpoint on
 held-out simulated takes (:func:`process.democap.demo_figures`) -> DeMoCap replay of the
 recording with that calibration (:func:`process.democap.run_replay`: ``results.mcap``,
-``results.c3d``, ``results.csv``; every :data:`REPLAY_EVERY`-th rig instant) scored against
-the truth, with the reconstructed skeleton against the truth (:data:`SKELETON_FIGURE`) -> a
-summary figure and report.
--> EventCap on a short simulated DAVIS take with truth, scored with the paper's baselines
-(:func:`process.eventcap.evaluate.evaluate_take`; synthetic detections, labelled so) -> with
-``davis_dvs``, ``eventcap run`` on the demo's own recording (synthetic detections and the
-simulator's true DAVIS calibration standing in for ``calibrate board``), scored against the
-truth. Stages not built yet are listed in the report as pending, never faked; a stage that
-fails is reported as failed and the command exits 1. ``progress`` reports every stage.
+``results.c3d``, ``results.csv``; every :data:`REPLAY_EVERY`-th rig instant) scored against the
+truth, with the reconstructed skeleton against the truth (:data:`SKELETON_FIGURE`) -> DeMoCap
+live on the mock rig -> ``mocaprig process`` on the session (in-process; run again, it keeps
+the finished outputs) -> EventCap on a short simulated DAVIS take with truth, scored with the
+paper's baselines (:func:`process.eventcap.evaluate.evaluate_take`; synthetic detections,
+labelled so) -> with ``davis_dvs``, ``eventcap run`` on the demo's own recording (synthetic
+detections and the simulator's true DAVIS calibration standing in for ``calibrate board``),
+scored against the truth -> a summary figure and report. Stages not built yet are listed in the
+report as pending, never faked; a stage that fails is reported as failed and the command exits
+1. ``progress`` reports every stage.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from mocaprig.acquire.device_id import DeviceId
 from mocaprig.calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
 from mocaprig.drivers_mock.session import SimulationResult, simulate_session
 from mocaprig.drivers_mock.truth import Truth, read_truth
-from mocaprig.errors import MocaprigError, RecordingError
+from mocaprig.errors import MocaprigError, ProcessingError, RecordingError
 from mocaprig.json_values import to_jsonable
 
 __all__ = ["CALIBRATION_REPORT", "REPLAY_EVERY", "SKELETON_FIGURE", "DemoReport", "run_demo"]
@@ -61,6 +62,8 @@ EVENTCAP_TAKE: dict[str, Any] = {"scenario": "karate", "seconds": 3.0, "start_s"
 EVENTCAP_BATCHES = 6
 #: Where on the DAVIS timeline (s) ``eventcap run`` starts on the demo's own recording.
 EVENTCAP_RUN_START_S = 1.6
+#: ``mocaprig process`` in the demo: DeMoCap on every n-th rig instant of the session.
+PROCESS_EVERY = 15
 
 #: The demo's figure of the replayed DeMoCap skeleton against the truth (in its folder).
 SKELETON_FIGURE = "democap_skeleton.png"
@@ -263,6 +266,46 @@ def _eventcap_run_figures(
         "protocol": "the demo's simulated recording; synthetic detections; the simulator's "
         "true DAVIS calibration",
         "mpjpe_mm": float(err_mm.mean()),
+    }
+
+
+def _process_figures(
+    session_dir: Path, out: Path, calib: Path, bar: Progress | None
+) -> dict[str, Any]:
+    """``mocaprig process`` (in-process engine) on the demo's session with DeMoCap, run twice:
+    the second run must find the first's outputs finished and keep them (resume)."""
+    from mocaprig.process.batch.engines import InProcessEngine
+    from mocaprig.process.batch.runner import process_sessions
+    from mocaprig.process.batch.sessions import find_sessions
+    from mocaprig.process.batch.tasks import ProcessSettings
+
+    settings = ProcessSettings(methods=("democap",), democap_every=PROCESS_EVERY)
+    sessions = find_sessions([session_dir], calib=calib)
+    folder = out / "process"
+    runs = []
+    with InProcessEngine() as engine:
+        for k in range(2):
+            if bar is not None:
+                bar(k, 2)
+            runs.append(process_sessions(sessions, out=folder, settings=settings, engine=engine))
+    if bar is not None:
+        bar(2, 2)
+    first, second = (r.to_json() for r in runs)
+    job = first["jobs"][0]
+    if job["status"] != "done":
+        msg = f"mocaprig process on {session_dir}: DeMoCap {job['status']}: {job['error']}"
+        raise ProcessingError(msg)
+    return {
+        "engine": first["engine"],
+        "out": str(folder),
+        "methods": list(settings.methods),
+        "every": PROCESS_EVERY,
+        "status": job["status"],
+        "seconds": job["seconds"],
+        "outputs": len(job["outputs"]),
+        "instants": job["details"].get("instants"),
+        "rerun_kept": second["skipped"],
+        "rerun_seconds": second["seconds"],
     }
 
 
@@ -825,6 +868,22 @@ def run_demo(
             figures["democap_live"] = {"error": str(err)}
             stages["democap_live"] = f"failed: {err}"
     timings["democap_live_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    if calib_file is None:
+        figures["process"] = {"error": "no calibration (the calibration stage failed)"}
+        stages["process"] = "skipped: needs the calibration, whose stage failed"
+    else:
+        try:
+            figures["process"] = _process_figures(
+                sim.out_dir, out, Path(calib_file), stage("process")
+            )
+            stages["process"] = "done (mocaprig process: DeMoCap in-process, then resumed)"
+        except MocaprigError as err:
+            _log.error("process stage failed: %s", err)
+            figures["process"] = {"error": str(err)}
+            stages["process"] = f"failed: {err}"
+    timings["process_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     try:

@@ -12,6 +12,8 @@ from mocaprig.drivers_mock.demo import run_demo
 from mocaprig.errors import RecordingError
 
 
+# The whole toolkit in one test: ~4 min on an idle 2-core machine, over 10 under heavy load.
+@pytest.mark.timeout(1500)
 def test_demo_command_reports_figures_against_truth(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -74,6 +76,14 @@ def test_demo_command_reports_figures_against_truth(
     assert lv["drops"] == 0
     assert 0 < lv["mpjpe_mm"] < 300  # the same off-distribution 2-camera rig as the replay
     assert Path(lv["out"]).is_file()
+    # `mocaprig process` on the session (DeMoCap, in-process); a second run keeps its outputs.
+    assert report["stages"]["process"].startswith("done")
+    pr = figures["process"]
+    assert pr["status"] == "done"
+    assert pr["instants"] == -(-rp["instants_total"] // 15)
+    assert pr["outputs"] >= 3
+    assert pr["rerun_kept"] == 1
+    assert (Path(pr["out"]) / "session" / "democap" / "done.json").is_file()
     # EventCap on a simulated excerpt of fast motion, with the paper's baselines beside it.
     assert report["stages"]["eventcap"].startswith("done")
     ec = figures["eventcap"]
