@@ -114,12 +114,16 @@ class LiveStats:
     def published_total(self) -> int:
         return sum(self.published.values())
 
+    @property
+    def decimated_total(self) -> int:
+        return sum(self.decimated.values())
+
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready totals and per-topic counts."""
         return {
             "published_total": self.published_total,
             "dropped_total": self.dropped_total,
-            "decimated_total": sum(self.decimated.values()),
+            "decimated_total": self.decimated_total,
             "published": dict(self.published),
             "dropped": dict(self.dropped),
         }
@@ -490,7 +494,7 @@ class LiveView:
             since = now
         if not any(s.topic.startswith("/syncbox/") for s in st.streams):
             sync = "none"
-        elif box_faults and box_faults[-1].kind in ("disconnected", "source-died"):
+        elif box_faults and box_faults[-1].lost:
             sync = "lost"
         else:
             sync = "ok" if now - since < 2.0 else "stalled"
@@ -519,7 +523,7 @@ class LiveView:
             "live": {
                 "published": live.published_total,
                 "dropped": live.dropped_total,
-                "decimated": sum(live.decimated.values()),
+                "decimated": live.decimated_total,
             },
         }
         ch.log(msg, log_time=rec.clock_ns())

@@ -23,6 +23,7 @@ from typing import Any, BinaryIO, Literal, Protocol, TextIO
 from mocaprig.acquire.live_view import LiveStats, LiveView
 from mocaprig.acquire.record_sources import DavisSource, DepthCameraSource, SyncBoxSource
 from mocaprig.acquire.recorder import (
+    RECORDER_TOPICS,
     Attachment,
     Fault,
     Recorder,
@@ -88,7 +89,7 @@ class _StatusLine:
         before = {s.topic: s.written for s in prev[1].streams}
         parts = []
         for s in st.streams:
-            if s.topic in ("/diagnostics", "/log", "/faults"):
+            if s.topic in RECORDER_TOPICS:
                 continue
             rate = (s.written - before.get(s.topic, 0)) / dt
             short = s.topic.rsplit("/", 2)
@@ -335,7 +336,7 @@ class RecordingSummary:
     @property
     def device_faults(self) -> tuple[Fault, ...]:
         """The faults that lost a device's data (its streams have a gap)."""
-        return tuple(f for f in self.faults if f.kind in ("disconnected", "source-died"))
+        return tuple(f for f in self.faults if f.lost)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (what ``record --json`` prints)."""
@@ -349,10 +350,7 @@ class RecordingSummary:
                 {"topic": s.topic, "messages": s.written, "drops": s.dropped} for s in self.streams
             ],
             "signal": self.signal,
-            "faults": [
-                {"kind": f.kind, "device": f.device, "t_ns": f.t_ns, "detail": f.detail}
-                for f in self.faults
-            ],
+            "faults": [f.as_dict() for f in self.faults],
             **({} if self.live is None else {"live": self.live.as_dict()}),
         }
 

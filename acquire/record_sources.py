@@ -80,6 +80,23 @@ def _lost_words(err: BaseException | str, t_last_data_ns: int | None, now_ns: in
     return f"{err}; {last}"
 
 
+def _fault_lost(
+    recorder: Recorder, device: str, err: BaseException | str, t_last_data_ns: int | None
+) -> int:
+    """Write the ``disconnected`` fault of ``device`` (now); returns its host time (ns)."""
+    t_lost = recorder.clock_ns()
+    recorder.fault("disconnected", device, _lost_words(err, t_last_data_ns, t_lost), t_ns=t_lost)
+    return t_lost
+
+
+def _fault_back(
+    recorder: Recorder, device: str, t_lost_ns: int, t_last_data_ns: int | None
+) -> None:
+    """Write the ``reconnected`` fault of ``device`` (now), lost since ``t_lost_ns``."""
+    now = recorder.clock_ns()
+    recorder.fault("reconnected", device, _gap_words(t_lost_ns, t_last_data_ns, now))
+
+
 class DavisSource:
     """A DAVIS240C (:class:`acquire.davis240c.Davis240C`, opened) as a :class:`StreamSource`.
 
@@ -159,10 +176,7 @@ class DavisSource:
                 self._stream(cam, recorder, stop, seq, manage=manage)
                 return
             except DeviceError as err:
-                t_lost = recorder.clock_ns()
-                recorder.fault(
-                    "disconnected", self.name, _lost_words(err, self._last_ns, t_lost), t_ns=t_lost
-                )
+                t_lost = _fault_lost(recorder, self.name, err, self._last_ns)
                 with contextlib.suppress(Exception):  # the handle is dead; free what is left
                     cam.close()
                 if self.reopen is None:
@@ -171,8 +185,7 @@ class DavisSource:
                 if cam is None:
                     return
                 self.cam, manage = cam, True  # a camera opened here is started and closed here
-                now = recorder.clock_ns()
-                recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+                _fault_back(recorder, self.name, t_lost, self._last_ns)
 
     def _stream(
         self,
@@ -365,20 +378,15 @@ class DepthCameraSource:
     def run(self, recorder: Recorder, stop: threading.Event) -> None:
         cam, manage, first = self.cam, self.manage_streaming, self.cam
         while True:
+            lost: BaseException | str | None = None
             try:
                 lost = self._stream(cam, recorder, stop, manage=manage)
-            except BaseException:
-                if cam is not first:
-                    cam.close()
-                raise
+            finally:
+                if lost is None and cam is not first:
+                    cam.close()  # a camera re-opened here is closed here (on an error too)
             if lost is None:
-                if cam is not first:
-                    cam.close()  # a camera re-opened here is closed here
                 return
-            t_lost = recorder.clock_ns()
-            recorder.fault(
-                "disconnected", self.name, _lost_words(lost, self._last_ns, t_lost), t_ns=t_lost
-            )
+            t_lost = _fault_lost(recorder, self.name, lost, self._last_ns)
             with contextlib.suppress(Exception):  # the camera is gone: free what is left
                 cam.close()
             if self.reopen is None:
@@ -398,8 +406,7 @@ class DepthCameraSource:
                 recorder.fault("disconnected", self.name, f"re-opened but cannot configure: {err}")
                 return
             self.cam, cam, manage = found, found, True
-            now = recorder.clock_ns()
-            recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+            _fault_back(recorder, self.name, t_lost, self._last_ns)
 
     def _stream(
         self,
@@ -446,9 +453,7 @@ class DepthCameraSource:
                         if self.reopen is not None:
                             return why
                         if silent_since is None:
-                            silent_since = recorder.clock_ns()
-                            detail = _lost_words(why, self._last_ns, silent_since)
-                            recorder.fault("disconnected", self.name, detail, t_ns=silent_since)
+                            silent_since = _fault_lost(recorder, self.name, why, self._last_ns)
                     continue
                 since = time.monotonic()
                 if silent_since is not None:
@@ -549,16 +554,12 @@ class SyncBoxSource:
                 n = self._listen(box, recorder, stop, n)
                 return
             except DeviceError as err:
-                t_lost = recorder.clock_ns()
-                recorder.fault(
-                    "disconnected", self.name, _lost_words(err, self._last_ns, t_lost), t_ns=t_lost
-                )
+                t_lost = _fault_lost(recorder, self.name, err, self._last_ns)
                 box.close()  # best effort; the port is closed whatever the box said
                 if not self.reopen:
                     return
                 if _wait_for_device(lambda: self._reopen(box), stop, self.retry_s, self.name):
-                    now = recorder.clock_ns()
-                    recorder.fault("reconnected", self.name, _gap_words(t_lost, self._last_ns, now))
+                    _fault_back(recorder, self.name, t_lost, self._last_ns)
                     continue
                 return
 

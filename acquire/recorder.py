@@ -55,7 +55,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, TracebackType
-from typing import Any, BinaryIO, Final, Literal, Protocol, Self, cast
+from typing import Any, BinaryIO, Final, Literal, Protocol, Self, cast, get_args
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
@@ -78,6 +78,7 @@ __all__ = [
     "DIAGNOSTICS_TOPIC",
     "FAULTS_TOPIC",
     "LOG_TOPIC",
+    "RECORDER_TOPICS",
     "Attachment",
     "Compression",
     "Fault",
@@ -97,6 +98,8 @@ _log = logging.getLogger(__name__)
 DIAGNOSTICS_TOPIC: Final = "/diagnostics"
 LOG_TOPIC: Final = "/log"
 FAULTS_TOPIC: Final = "/faults"
+#: The recorder's own topics (every other topic is a device's data).
+RECORDER_TOPICS: Final = frozenset({DIAGNOSTICS_TOPIC, LOG_TOPIC, FAULTS_TOPIC})
 _MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
 
 Compression = Literal["zstd", "lz4", "none"]
@@ -122,9 +125,9 @@ class StopReason(enum.Enum):
 FaultKind = Literal[
     "disconnected", "reconnected", "source-died", "disk-full", "write-error", "signal"
 ]
-_FAULT_KINDS: Final[frozenset[str]] = frozenset(
-    ("disconnected", "reconnected", "source-died", "disk-full", "write-error", "signal")
-)
+_FAULT_KINDS: Final[frozenset[str]] = frozenset(get_args(FaultKind))
+#: The kinds that lose a device's data (its streams have a gap until ``reconnected``).
+_LOST_KINDS: Final[frozenset[str]] = frozenset(("disconnected", "source-died"))
 #: Log level of each fault kind on ``/faults`` (a device back is good news: INFO).
 _FAULT_LEVEL: Final[dict[str, LogLevel]] = {
     "disconnected": "ERROR",
@@ -155,6 +158,15 @@ class Fault:
     device: str
     t_ns: int
     detail: str
+
+    @property
+    def lost(self) -> bool:
+        """Whether this fault lost a device's data (``disconnected`` or ``source-died``)."""
+        return self.kind in _LOST_KINDS
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: ``kind``, ``device``, ``t_ns``, ``detail``."""
+        return {"kind": self.kind, "device": self.device, "t_ns": self.t_ns, "detail": self.detail}
 
     def to_log(self) -> LogMsg:
         """The ``foxglove.Log`` message: ``name`` = device, ``message`` = ``"<kind>: <detail>"``."""
@@ -572,7 +584,7 @@ class Recorder:
         f = Fault(kind, device, self._clock_ns() if t_ns is None else t_ns, detail)
         with self._lock:
             self._faults.append(f)
-        level = f.to_log().level
+        level = _FAULT_LEVEL[kind]
         _log.log(getattr(logging, "CRITICAL" if level == "FATAL" else level), "%s: %s: %s",
                  device, kind, detail)  # fmt: skip
         return f
@@ -844,11 +856,7 @@ class Recorder:
                     if self._waiting:
                         self._room.notify_all()
                 disk_full = self._stop_reason is StopReason.DISK_FULL
-                fs = self._faults_stream
-                keep = s.handle.index == self._logs.index or (
-                    fs is not None and s.handle.index == fs.index
-                )
-                if disk_full and not keep:
+                if disk_full and not self._kept_on_full_disk(s):
                     with self._lock:  # no room left: drop what is still queued
                         s.queued_bytes -= n
                         s.dropped += 1
@@ -871,15 +879,20 @@ class Recorder:
                     s.queued_bytes -= n
                     s.written += 1
                     s.bytes_written += len(data)
-                if self._tap is not None:
-                    self._call_tap(s.handle.topic, message, data, log_time)
+                tap = self._tap
+                if tap is not None:
+                    self._call_tap(tap, s.handle.topic, message, data, log_time)
         self._file_bytes = part.tell()
 
-    def _call_tap(self, topic: str, message: RecordedPayload, data: bytes, log_time: int) -> None:
+    def _kept_on_full_disk(self, s: _Stream) -> bool:
+        """Whether ``s`` is still written once the disk is full (``/log`` and ``/faults``)."""
+        fs = self._faults_stream
+        return s.handle.index == self._logs.index or (fs is not None and s.handle.index == fs.index)
+
+    def _call_tap(
+        self, tap: Tap, topic: str, message: RecordedPayload, data: bytes, log_time: int
+    ) -> None:
         """Hand a written message to the tap; a failing tap is dropped, the recording goes on."""
-        tap = self._tap
-        if tap is None:
-            return
         try:
             tap(topic, message, data, log_time)
         except Exception as err:

@@ -39,7 +39,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from mocaprig.acquire.events import EVENT_DTYPE
-from mocaprig.acquire.recorder import FAULTS_TOPIC, Fault
+from mocaprig.acquire.recorder import FAULTS_TOPIC, RECORDER_TOPICS, Fault
 from mocaprig.acquire.recording_format import (
     FORMAT_VERSION,
     IMU_DTYPE,
@@ -596,9 +596,6 @@ class TimeBase:
     end_ns: int
 
 
-_RECORDER_TOPICS: Final = frozenset({"/diagnostics", "/log", FAULTS_TOPIC})
-
-
 @dataclass(frozen=True, slots=True)
 class DeviceGap:
     """A span without data from one device: from its ``disconnected`` fault to its
@@ -623,11 +620,12 @@ class DeviceGap:
 
 
 def _gaps(faults: Iterable[Fault], end_ns: int | None) -> tuple[DeviceGap, ...]:
-    """Pair each device's ``disconnected`` / ``source-died`` with its next ``reconnected``."""
+    """Pair each device's ``disconnected`` / ``source-died`` with its next ``reconnected``
+    (``faults`` in time order)."""
     open_since: dict[str, int] = {}
     out: list[DeviceGap] = []
-    for f in sorted(faults, key=lambda f: f.t_ns):
-        if f.kind in ("disconnected", "source-died"):
+    for f in faults:
+        if f.lost:
             open_since.setdefault(f.device, f.t_ns)
         elif f.kind == "reconnected" and f.device in open_since:
             out.append(DeviceGap(f.device, open_since.pop(f.device), f.t_ns, back=True))
@@ -652,7 +650,7 @@ def _time_bases(segments: Mapping[tuple[str, TimeBaseName], list[int]]) -> tuple
             min(v[1] for v in segs.values()),
             max(v[2] for v in segs.values()),
         )
-        data = sum(v[0] for t, v in segs.items() if t not in _RECORDER_TOPICS)
+        data = sum(v[0] for t, v in segs.items() if t not in RECORDER_TOPICS)
         bases.append((data, base.messages, base))
     bases.sort(key=lambda x: x[:2], reverse=True)
     return tuple(b for _, _, b in bases)
@@ -747,10 +745,7 @@ class RecordingInfo:
                 }
                 for b in self.time_bases
             ],
-            "faults": [
-                {"kind": f.kind, "device": f.device, "t_ns": f.t_ns, "detail": f.detail}
-                for f in self.faults
-            ],
+            "faults": [f.as_dict() for f in self.faults],
             "gaps": [
                 {
                     "device": g.device,
@@ -845,6 +840,7 @@ def info(path: Path) -> RecordingInfo:
             "; ".join(f"{', '.join(b.topics)} on {b.name} time" for b in bases),
             bases[0].name,
         )
+    in_order = tuple(sorted(faults, key=lambda f: f.t_ns))
     return RecordingInfo(
         path=path,
         indexed=indexed,
@@ -859,8 +855,8 @@ def info(path: Path) -> RecordingInfo:
         attachments=attachments,
         metadata=meta,
         time_bases=bases,
-        faults=tuple(sorted(faults, key=lambda f: f.t_ns)),
-        gaps=_gaps(faults, bases[0].end_ns if bases else None),
+        faults=in_order,
+        gaps=_gaps(in_order, bases[0].end_ns if bases else None),
     )
 
 

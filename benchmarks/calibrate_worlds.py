@@ -44,7 +44,7 @@ from mocaprig.calib.vicon_calibration_options import CalibrationOptions
 from mocaprig.drivers_mock.session import simulate_session
 from mocaprig.errors import MocaprigError
 
-#: Frame period of the D415s (ns), to count whole-period DAVIS pairing errors.
+#: Frame period of the D415s (µs), to count whole-period DAVIS pairing errors.
 _PERIOD_US = 1e6 / 30.0
 
 _FIGURES = (

@@ -216,7 +216,7 @@ def live_cell(folder: Path, streams: list[_Stream], seconds: float) -> dict[str,
         "live_published_total": stats.published_total,
         "live_dropped_total": stats.dropped_total,
         "live_dropped_per_topic": dict(stats.dropped),
-        "live_decimated_total": sum(stats.decimated.values()),
+        "live_decimated_total": stats.decimated_total,
     }
 
 
@@ -277,14 +277,14 @@ def main() -> None:
         disk = raw_disk_mb_per_s(folder)
         print(f"raw disk (4 MiB blocks + fsync): {disk:.0f} MB/s", flush=True)
         rng = np.random.default_rng(0)
-        rig = record_cell(folder, "rig", _rig_streams(rng, 4, 848, 480, 30), args.seconds)
+        rig_streams = _rig_streams(rng, 4, 848, 480, 30)
+        rig = record_cell(folder, "rig", rig_streams, args.seconds)
         print("rig 4x848x480@30 + DAVIS 5 Mev/s:", json.dumps(rig), flush=True)
         live: dict[str, Any] | None = None
-        if args.live:
-            rng_live = np.random.default_rng(0)  # the same rig as the cell above
-            streams = _rig_streams(rng_live, 4, 848, 480, 30)
-            live = live_cell(folder, streams, args.seconds)
+        if args.live:  # the same rig (its payloads are only read)
+            live = live_cell(folder, rig_streams, args.seconds)
             print("rig with the live view + a client:", json.dumps(live), flush=True)
+        del rig_streams  # not held through the cells below
         sat = saturation_cell(folder, 5.0)
         print(f"saturation (depth frames, lz4): {sat['mb_per_s']} MB/s", flush=True)
         rigs: dict[str, dict[str, Any]] = {}

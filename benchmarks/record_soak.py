@@ -54,6 +54,15 @@ def _part_dropped(path: Path) -> int:
     return sum(int(v) for k, v in summary.items() if k.startswith("dropped:"))
 
 
+def _check_part(path: Path) -> dict[str, Any]:
+    """A finished part's name, size (MB) and the drops its summary counts."""
+    return {
+        "part": path.name,
+        "mb": round(path.stat().st_size / 1e6, 1),
+        "dropped": _part_dropped(path),
+    }
+
+
 def soak(
     folder: Path,
     streams: list[_Stream],
@@ -84,10 +93,7 @@ def soak(
             finished = rec.files[:-1]
             for old in finished[: max(len(finished) - keep_parts, 0)]:
                 if old.exists():
-                    parts_checked.append(
-                        {"part": old.name, "mb": round(old.stat().st_size / 1e6, 1),
-                         "dropped": _part_dropped(old)}
-                    )  # fmt: skip
+                    parts_checked.append(_check_part(old))
                     old.unlink()
             if elapsed >= next_minute:
                 dropped = sum(s.dropped for s in rec.status().streams)
@@ -105,10 +111,7 @@ def soak(
     final = {s.topic: s for s in rec.status().streams}
     for path in rec.files:
         if path.exists():
-            parts_checked.append(
-                {"part": path.name, "mb": round(path.stat().st_size / 1e6, 1),
-                 "dropped": _part_dropped(path)}
-            )  # fmt: skip
+            parts_checked.append(_check_part(path))
             path.unlink()
     return {
         "seconds": round(wall, 1),

@@ -20,6 +20,7 @@ from mocaprig.calib.c3d_layout import validate_c3d
 from mocaprig.calib.vicon_records import (
     METRES_PER_UNIT,
     AnalogChannels,
+    BoolArray,
     FloatArray,
     MarkerTrajectories,
     ViconFileError,
@@ -48,6 +49,37 @@ def _rewrite_point_words(path: Path, words: FloatArray) -> None:
         vals[:, 3 : 4 * n_points : 4] = words
         fh.seek(layout.data_offset)
         fh.write(vals.astype("<f4").tobytes())
+
+
+def _point_words(
+    residuals_m: FloatArray,
+    valid: BoolArray,
+    per_m: float,
+    scale: float,
+    *,
+    warn: Path | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Residuals (m, NaN: none) in the file's unit clipped to ``[0, 255·scale]``, and the
+    points' fourth words: the residual in ``scale`` steps, -1 where a point is not ``valid``.
+    ``warn`` names the file in a warning when residuals were clipped."""
+    res_file = np.where(np.isnan(residuals_m), 0.0, residuals_m * per_m)
+    max_res = 255 * scale
+    if warn is not None and np.any(res_file > max_res):
+        _log.warning("%s: residuals above %.2f mm clipped", warn, max_res / per_m * 1e3)
+    res_file = np.clip(res_file, 0.0, max_res)
+    # c3d.org layout of the fourth word (a float holding an integer): camera byte high (0 here),
+    # residual / |SCALE| low; -1 for a gap.
+    words = np.where(valid, np.rint(res_file / scale), -1.0)
+    return res_file, words
+
+
+def _replace_tmp(tmp: Path, out: Path, *, overwrite: bool) -> None:
+    """Move the finished ``tmp`` to ``out``, unless ``out`` appeared meanwhile and may not be
+    replaced (:class:`ViconFileError`)."""
+    if out.exists() and not overwrite:
+        msg = f"{out}: the file appeared while writing; pass overwrite=True to replace it"
+        raise ViconFileError(msg, path=out)
+    tmp.replace(out)
 
 
 def write_c3d(
@@ -110,15 +142,9 @@ def write_c3d(
     pts[3] = 1.0
     coords = np.where(valid[..., None], t.positions_m * per_m, np.nan)
     pts[:3] = np.transpose(coords, (2, 1, 0))
-    res_file = np.where(np.isnan(t.residuals_m), 0.0, t.residuals_m * per_m)
-    max_res = 255 * scale
-    if np.any(res_file > max_res):
-        _log.warning("%s: residuals above %.2f mm clipped", out, max_res / per_m * 1e3)
-    res_file = np.clip(res_file, 0.0, max_res)
-    # c3d.org layout of the fourth word (a float holding an integer): camera byte high (0 here),
-    # residual / |SCALE| low; -1 for a gap. ezc3d 1.7.2 swaps the bytes, so the words are
-    # rewritten after ezc3d has written the file.
-    words = np.where(valid, np.rint(res_file / scale), -1.0)
+    # ezc3d 1.7.2 swaps the fourth word's bytes, so the words are rewritten after ezc3d has
+    # written the file.
+    res_file, words = _point_words(t.residuals_m, valid, per_m, scale, warn=out)
     res_file = np.where(valid, res_file, -1.0)
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [t.rate_hz]
@@ -153,10 +179,7 @@ def write_c3d(
             fh.seek(12)
             fh.write(struct.pack("<f", -scale))
         _rewrite_point_words(tmp, words)
-        if out.exists() and not overwrite:
-            msg = f"{out}: the file appeared while writing; pass overwrite=True to replace it"
-            raise ViconFileError(msg, path=out)
-        tmp.replace(out)
+        _replace_tmp(tmp, out, overwrite=overwrite)
     except ViconFileError:
         raise
     except Exception as err:
@@ -272,10 +295,9 @@ class C3DFrameWriter:
             raise ValidationError(msg)
         res = np.zeros(pos.shape[:2]) if residuals_m is None else np.asarray(residuals_m)
         valid = np.asarray(np.isfinite(pos).all(axis=-1), dtype=bool)
-        res_file = np.clip(np.where(np.isnan(res), 0.0, res * self._per_m), 0, 255 * self._scale)
         block = np.empty((pos.shape[0], self._n_points, 4), dtype="<f4")
         block[..., :3] = np.where(valid[..., None], pos * self._per_m, 0.0)
-        block[..., 3] = np.where(valid, np.rint(res_file / self._scale), -1.0)
+        block[..., 3] = _point_words(res, valid, self._per_m, self._scale)[1]
         try:
             self._fh.write(block.tobytes())
         except OSError as err:
@@ -311,10 +333,7 @@ class C3DFrameWriter:
             self._fh.seek(self._end_at)
             self._fh.write(struct.pack("<HH", last % 65536, last // 65536))
             self._fh.close()
-            if self.path.exists() and not self._overwrite:
-                msg = f"{self.path}: the file appeared while writing; pass overwrite=True"
-                raise ViconFileError(msg, path=self.path)
-            self._tmp.replace(self.path)
+            _replace_tmp(self._tmp, self.path, overwrite=self._overwrite)
         except ViconFileError:
             self.discard()
             raise

@@ -233,13 +233,11 @@ def calibrate_vicon_command(args: argparse.Namespace) -> int:
     index: str | None = None
     if args.report is not None:
         from mocaprig.calib.report import write_report
-        from mocaprig.calib.vicon import read_trajectories
 
         report = write_report(
             result,
             args.report,
             overwrite=args.overwrite,
-            trajectories=read_trajectories(args.vicon, unit=args.unit),
             summary=summary,
             progress=ProgressBar("calibration report", unit="files"),
         )

@@ -70,7 +70,7 @@ def write_report(
         out_dir: The report folder.
         overwrite: Write into a folder that holds files.
         trajectories: The Vicon trial (its markers' extent is the volume drawn beside the rig);
-            None draws the static start's only.
+            None: ``result.trajectories``, and when that is None too, the static start's only.
         summary: The JSON shown beside the figures (default: ``result.summary()``).
         progress: ``(figures_done, figures_total)`` callback.
 
@@ -87,6 +87,8 @@ def write_report(
         msg = f"report folder {out} is not empty; pass --overwrite to write into it"
         raise CalibrationError(msg)
     out.mkdir(parents=True, exist_ok=True)
+    if trajectories is None:
+        trajectories = result.trajectories
     clocks = {k.device: k for k in result.calibration.clocks}
     fits = {n: f for n, f in result.clock_fits.items() if n in clocks and len(f[0])}
     total = 2 * len(result.registrations) + len(fits) + bool(result.vicon_claps) + 4

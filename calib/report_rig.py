@@ -130,10 +130,10 @@ def write_rig_figure(
     if box is not None:
         _draw_box(ax, *box)
     depth = 0.15 * size
-    for n, cam in enumerate(cameras):
+    rings = [frustum_corners_m(cam, depth) for cam in cameras]
+    for n, (cam, ring) in enumerate(zip(cameras, rings, strict=True)):
         colour = "tab:purple" if cam.kind == "davis" else "tab:blue"
         c = np.asarray(cam.T_world_cam, dtype=np.float64)[:3, 3]
-        ring = frustum_corners_m(cam, depth)
         loop = np.vstack([ring, ring[:1]])
         ax.plot(loop[:, 0], loop[:, 1], loop[:, 2], color=colour, lw=1.2)
         for corner in ring:
@@ -143,8 +143,8 @@ def write_rig_figure(
         ax.scatter(*c, color=colour, s=25, label=f"{cam.kind} frusta" if n == 0 else None)
         ax.text(c[0], c[1], c[2], f" {cam.serial or cam.name}", fontsize=7, color=colour)
     # Equal scale on every axis: a camera's distance to the volume is read off the figure.
-    lo = np.nanmin(np.vstack([extent_pts, *[frustum_corners_m(c, depth) for c in cameras]]), 0)
-    hi = np.nanmax(np.vstack([extent_pts, *[frustum_corners_m(c, depth) for c in cameras]]), 0)
+    drawn = np.vstack([extent_pts, *rings])
+    lo, hi = np.nanmin(drawn, 0), np.nanmax(drawn, 0)
     mid, half = (lo + hi) / 2, float(np.max(hi - lo)) / 2 * 1.05
     ax.set_xlim(mid[0] - half, mid[0] + half)
     ax.set_ylim(mid[1] - half, mid[1] + half)

@@ -93,7 +93,6 @@ from mocaprig.calib.vicon_calibration_frames import (
 from mocaprig.calib.vicon_calibration_options import (
     MAX_RMS_PX,
     CalibrationOptions,
-    D415PulseAt,
     D415PulseTiming,
 )
 from mocaprig.calib.vicon_calibration_pooled_clock import Tie, pooled_clocks, tie_by_counters
@@ -116,6 +115,7 @@ from mocaprig.calib.vicon_calibration_video_clock import (
     reprojection_cost,
     stretch_offsets,
 )
+from mocaprig.calib.vicon_records import MarkerTrajectories
 from mocaprig.errors import CalibrationError, RecordingError
 
 __all__ = [
@@ -162,6 +162,8 @@ class ViconCalibrationResult:
         vicon_claps: The claps found in the Vicon trial (for the report).
         clock_fits: Per camera, the reprojection clock's stretches: device times (ns), offsets
             (ns) and their 1σ (ns) (for the report).
+        trajectories: The Vicon trial as read (the report draws the volume its markers span);
+            None in a result built without it.
     """
 
     calibration: Calibration
@@ -172,6 +174,7 @@ class ViconCalibrationResult:
     notes: tuple[str, ...] = ()
     vicon_claps: tuple[ClapDetection, ...] = field(default=(), repr=False)
     clock_fits: Mapping[str, tuple[F64, F64, F64]] = field(default_factory=dict, repr=False)
+    trajectories: MarkerTrajectories | None = field(default=None, repr=False, compare=False)
 
     def summary(self) -> dict[str, Any]:
         """Plain JSON-able figures (``--json``)."""
@@ -214,18 +217,6 @@ def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
         else:
             out.append((lo, hi))
     return out
-
-
-def _pulse_timings(opt: CalibrationOptions) -> list[D415PulseTiming]:
-    """The pulse timings to try: the assumed one, and the other published convention when
-    ``opt.measure_pulse_phase``."""
-    assumed = opt.pulse_timing
-    if not opt.measure_pulse_phase:
-        return [assumed]
-    other: D415PulseAt = (
-        "readout-start" if assumed.pulse_at == "exposure-start" else "exposure-start"
-    )
-    return [assumed, D415PulseTiming.preset(other)]
 
 
 def _with_pulse_timing(opt: CalibrationOptions, timing: D415PulseTiming) -> CalibrationOptions:
@@ -488,7 +479,7 @@ def calibrate_vicon(
         # exposes (0.1 ms or an exposure + 0.77 ms): pool under each convention and keep the
         # one the stretches fit (a wrong one splits the difference between the cameras).
         pools = []
-        for timing in _pulse_timings(opt):
+        for timing in opt.pulse_timings():
             t_ties: dict[str, Tie] = {}
             pooled, p_notes = pooled_clocks(
                 {c.name: (stamps[c.name], counters[c.name]) for c in cams},
@@ -667,4 +658,5 @@ def calibrate_vicon(
         notes=tuple(notes),
         vicon_claps=tuple(vicon_claps),
         clock_fits=clock_fits,
+        trajectories=traj,
     )

@@ -224,3 +224,14 @@ class CalibrationOptions:
         if self.slave_trigger_delay_us is None:
             return D415PulseTiming.preset(self.d415_pulse_at)
         return D415PulseTiming(self.d415_pulse_at, float(self.slave_trigger_delay_us))
+
+    def pulse_timings(self) -> tuple[D415PulseTiming, ...]:
+        """The pulse timings to try: :attr:`pulse_timing` first, then, with
+        ``measure_pulse_phase``, the other published convention (:meth:`D415PulseTiming.preset`)."""
+        assumed = self.pulse_timing
+        if not self.measure_pulse_phase:
+            return (assumed,)
+        other: D415PulseAt = (
+            "readout-start" if assumed.pulse_at == "exposure-start" else "exposure-start"
+        )
+        return (assumed, D415PulseTiming.preset(other))

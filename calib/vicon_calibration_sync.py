@@ -28,7 +28,6 @@ from mocaprig.calib.sync_edges import SyncEdges
 from mocaprig.calib.vicon_calibration_frames import CalibCamera
 from mocaprig.calib.vicon_calibration_options import (
     CalibrationOptions,
-    D415PulseAt,
     D415PulseTiming,
 )
 from mocaprig.calib.vicon_calibration_pooled_clock import Tie, through_tie
@@ -211,13 +210,9 @@ def sync_clocks(
             moved.append(f"{name} {shift:+d}")
             _log.info("%s: sync clock moved by %+d edge periods (reprojection cost)", name, shift)
 
-    assumed = opt.pulse_timing
-    timings = [assumed]
-    if opt.measure_pulse_phase and sync.master_exposure_ns is not None:
-        other: D415PulseAt = (
-            "readout-start" if assumed.pulse_at == "exposure-start" else "exposure-start"
-        )
-        timings.append(D415PulseTiming.preset(other))
+    # Without the master's exposure both conventions give the same frame delay: one fit.
+    timings = opt.pulse_timings() if sync.master_exposure_ns is not None else (opt.pulse_timing,)
+    assumed = timings[0]
     fits: list[tuple[D415PulseTiming, ClockMapping, float, int]] = []
     failure: CalibrationError | None = None
     for timing in timings:

@@ -52,8 +52,8 @@ from typing import Any, BinaryIO, Final, Literal, cast, get_args
 
 import serial
 import usb.backend
-import usb.core
 
+from mocaprig.drivers_mock.davis240c_usb import _no_device
 from mocaprig.errors import DeviceDisconnectedError, DeviceNotFoundError, ValidationError
 
 __all__ = [
@@ -69,9 +69,6 @@ __all__ = [
 FaultName = Literal["davis-unplug", "d415-disconnect", "syncbox-unplug", "disk-full"]
 _NAMES: Final[tuple[str, ...]] = get_args(FaultName)
 
-#: pyusb's words for LIBUSB_ERROR_NO_DEVICE (``usb/backend/libusb1.py``) and its code.
-_NO_DEVICE_TEXT: Final = "No such device (it may have been disconnected)"
-_LIBUSB_ERROR_NO_DEVICE: Final = -4
 #: What pyserial's POSIX read raises when a USB CDC device vanishes (``serialposix.py``).
 _SERIAL_GONE: Final = (
     "device reports readiness to read but returned no data (device disconnected or multiple "
@@ -202,11 +199,8 @@ class FaultSchedule:
 
     def elapsed_s(self) -> float:
         """Seconds since :meth:`start` (which this starts, when not yet)."""
-        with self._lock:
-            if self._t0 is None:
-                self._t0 = self._clock()
-            t0 = self._t0
-        return self._clock() - t0
+        self.start()
+        return self._clock() - cast(float, self._t0)
 
     def active(self, kind: FaultName, serial: str | None = None) -> bool:
         """Whether a ``kind`` fault holds now for device ``serial``."""
@@ -218,6 +212,19 @@ class FaultSchedule:
         generation belongs to a device that was unplugged since."""
         t = self.elapsed_s()
         return sum(1 for f in self.faults if f.kind == kind and f.hits(serial) and t >= f.at_s)
+
+    def gone(self, kind: FaultName, serial: str | None = None, opened: int | None = None) -> bool:
+        """Whether a ``kind`` fault holds now for device ``serial`` or, for a handle opened in
+        generation ``opened``, one has begun since (one clock read for both)."""
+        t = self.elapsed_s()
+        began = 0
+        for f in self.faults:
+            if f.kind == kind and f.hits(serial):
+                if f.active(t):
+                    return True
+                if t >= f.at_s:
+                    began += 1
+        return opened is not None and opened < began
 
     # -- the boundaries ------------------------------------------------------------------------
 
@@ -276,10 +283,6 @@ def fault_schedule(spec: str) -> FaultSchedule:
 # DAVIS: pyusb backend
 
 
-def _no_device() -> usb.core.USBError:
-    return usb.core.USBError(_NO_DEVICE_TEXT, _LIBUSB_ERROR_NO_DEVICE, errno.ENODEV)
-
-
 class FaultyUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
     """A pyusb ``IBackend`` that forwards to ``inner`` unless the device is unplugged.
 
@@ -295,13 +298,8 @@ class FaultyUsbBackend(usb.backend.IBackend):  # type: ignore[misc]
         self._handles: dict[int, int] = {}  # id(handle) -> generation at open
 
     def _gone(self, handle: Any = None) -> bool:
-        s = self.schedule
-        if s.active("davis-unplug", self.serial):
-            return True
-        if handle is None:
-            return False
-        opened = self._handles.get(id(handle))
-        return opened is not None and opened < s.generation("davis-unplug", self.serial)
+        opened = None if handle is None else self._handles.get(id(handle))
+        return self.schedule.gone("davis-unplug", self.serial, opened)
 
     def _check(self, handle: Any = None) -> None:
         if self._gone(handle):
@@ -422,10 +420,7 @@ class FaultyDepthCamera:
         self._closed = False
 
     def _gone(self) -> bool:
-        s = self.schedule
-        return s.active("d415-disconnect", self.serial) or self._generation < s.generation(
-            "d415-disconnect", self.serial
-        )
+        return self.schedule.gone("d415-disconnect", self.serial, self._generation)
 
     def _check(self, what: str) -> None:
         if self._closed:
@@ -552,8 +547,7 @@ class _FaultySerial(serial.Serial):  # type: ignore[misc]
     _generation = 0
 
     def _pulled(self) -> bool:
-        s = self._schedule
-        return s.active("syncbox-unplug") or self._generation < s.generation("syncbox-unplug")
+        return self._schedule.gone("syncbox-unplug", opened=self._generation)
 
     def open(self) -> None:
         """Open the port; ``ENOENT`` while the cable is out (the device node is gone)."""

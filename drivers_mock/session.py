@@ -292,11 +292,7 @@ def simulate_session(
                 scene.clocks["vicon"],
                 np.asarray(recording.sync_pulses_ns, dtype=np.int64),
                 rng=scene.rng("vicon-sync"),
-                wiring=(
-                    None
-                    if scene.world_params.kind == "nominal"
-                    else SyncWiring.for_world(scene.world_params)
-                ),
+                wiring=SyncWiring.for_world(scene.world_params),
             )
             _write_sync_truth(truth_dir / "vicon_sync.npz", sync, recording.sync_pulses_ns)
             write_c3d(capture, c3d_path, subject=scene.rig.vicon.subject, analogs=sync)

@@ -265,23 +265,24 @@ def simulate_sync_channel(
     )
     edges = pulses.astype(np.float64) + latency
     target = ((np.arange(edges.size) + 1) % 2).astype(np.float64)  # first pulse: low → high
-    y_before = np.zeros(edges.size)
-    y = 0.0  # settled low before the first pulse
-    for j in range(1, edges.size):
-        y = target[j - 1] + (y - target[j - 1]) * np.exp(-(edges[j] - edges[j - 1]) / tau)
-        y_before[j] = y
     n_samples = capture.num_frames * spf_i
     n = (capture.start_field - 1) * spf_i + np.arange(n_samples, dtype=np.int64)
     device = np.round(n.astype(np.float64) * (1e9 / w.rate_hz)).astype(np.int64)
     t = clock.session_ns(device, unit_ns=1).astype(np.float64)
     k = np.searchsorted(edges, t, side="right") - 1
-    kk = np.clip(k, 0, max(edges.size - 1, 0))
-    if edges.size:
+    if not edges.size:
+        level = np.zeros(n_samples)
+    elif w.antialias_hz is None:
+        # A first-order RC: each sample relaxes from the level at its last switch.
+        y_before = np.zeros(edges.size)
+        y = 0.0  # settled low before the first pulse
+        for j in range(1, edges.size):
+            y = target[j - 1] + (y - target[j - 1]) * np.exp(-(edges[j] - edges[j - 1]) / tau)
+            y_before[j] = y
+        kk = np.clip(k, 0, edges.size - 1)
         level = target[kk] + (y_before[kk] - target[kk]) * np.exp(-(t - edges[kk]) / tau)
         level = np.where(k >= 0, level, 0.0)
     else:
-        level = np.zeros(n_samples)
-    if w.antialias_hz is not None and edges.size:
         # A filtered edge is no first-order curve: sum the chain's step responses of the
         # last few switches (earlier ones have settled within 33 ms ≫ τ).
         h = _step_response(tau, w.antialias_hz)

@@ -46,6 +46,7 @@ from typing import Final, Literal, get_args
 
 import numpy as np
 
+from mocaprig.drivers_mock.rig import PulseAt
 from mocaprig.errors import ValidationError
 
 __all__ = ["WORLD_KINDS", "WorldKind", "WorldParams"]
@@ -54,8 +55,6 @@ __all__ = ["WORLD_KINDS", "WorldKind", "WorldParams"]
 WorldKind = Literal["nominal", "random"]
 #: The kinds, in the order the CLI lists them.
 WORLD_KINDS: Final[tuple[WorldKind, ...]] = get_args(WorldKind)
-
-_PulseAt = Literal["exposure-start", "readout-start"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,7 +98,7 @@ class WorldParams:
     kind: WorldKind = "nominal"
     sync_latency_us: float = 2.0
     sync_latency_jitter_us: float = 1.0
-    pulse_at: _PulseAt | None = None
+    pulse_at: PulseAt | None = None
     slave_trigger_delay_us: float | None = None
     sync_tau_us: float = 470.0
     antialias_hz: float | None = None
@@ -182,7 +181,7 @@ class WorldParams:
             rng: The scenario's ``"world"`` stream (consumed).
             num_d415: D415 clocks to draw a drift for.
         """
-        pulse_at: _PulseAt = "readout-start" if rng.random() < 0.5 else "exposure-start"
+        pulse_at: PulseAt = "readout-start" if rng.random() < 0.5 else "exposure-start"
         delay = (
             rng.uniform(700.0, 900.0) if pulse_at == "readout-start" else rng.uniform(0.0, 200.0)
         )

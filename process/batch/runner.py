@@ -358,11 +358,8 @@ def process_sessions(
 
     def write_take(job: _Job) -> None:
         plan = _plan(job)
-        stitched = stitch_segments(
-            list(job.segments.values()),
-            step_us=1000,
-            batches=plan.batches,
-        )
+        # The batch count is the last segment's end, plan.batches (plan_segments).
+        stitched = stitch_segments(list(job.segments.values()))
         staging = job.new_staging()
         stem = OUTPUT_STEM["eventcap"]
         write_eventcap(

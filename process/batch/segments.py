@@ -35,12 +35,10 @@ from typing import TYPE_CHECKING, Final, overload
 import numpy as np
 import numpy.typing as npt
 
-from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
 
 if TYPE_CHECKING:
-    from mocaprig.acquire.device_streams import RecordedDavis
     from mocaprig.process.eventcap.pipeline import ApsFrame, EventcapOptions
-    from mocaprig.process.eventcap.run import RecordingFrames
 
 __all__ = [
     "DEFAULT_OVERLAP",
@@ -192,17 +190,6 @@ class _FrameSpan(Sequence["ApsFrame"]):
             yield self[i]
 
 
-def _select_frames(inputs: EventcapInputs, davis: RecordedDavis) -> RecordingFrames:
-    from mocaprig.process.eventcap.run import RecordingFrames
-
-    return RecordingFrames(
-        davis,
-        start_us=None if inputs.start_s is None else round(inputs.start_s * 1e6),
-        end_us=None if inputs.end_s is None else round(inputs.end_s * 1e6),
-        limit=None if inputs.batches is None else inputs.batches + 1,
-    )
-
-
 def plan_eventcap(
     inputs: EventcapInputs,
     *,
@@ -227,6 +214,7 @@ def plan_eventcap(
         load_detector,
         load_shape,
         select_davis,
+        select_frames,
     )
 
     load_shape(height_m=inputs.height_m, shape_path=inputs.shape)
@@ -234,7 +222,9 @@ def plan_eventcap(
     with Recording(inputs.session) as rec:
         dav = select_davis(rec, inputs.davis)
         davis_calibration(cal, dav, str(inputs.calibration))
-        frames = _select_frames(inputs, dav)
+        frames = select_frames(
+            dav, start_s=inputs.start_s, end_s=inputs.end_s, batches=inputs.batches
+        )
         n = len(frames)
         if n < 2:
             msg = (
@@ -295,6 +285,7 @@ def run_segment(inputs: EventcapInputs, segment: Segment) -> SegmentResult:
         load_detector,
         load_shape,
         select_davis,
+        select_frames,
     )
     from mocaprig.process.eventcap.take import iter_take
 
@@ -304,7 +295,9 @@ def run_segment(inputs: EventcapInputs, segment: Segment) -> SegmentResult:
     with Recording(inputs.session) as rec:
         dav = select_davis(rec, inputs.davis)
         camera = EventCamera.from_calibration(davis_calibration(cal, dav, str(inputs.calibration)))
-        frames = _select_frames(inputs, dav)
+        frames = select_frames(
+            dav, start_s=inputs.start_s, end_s=inputs.end_s, batches=inputs.batches
+        )
         n = len(frames)
         if segment.end + 1 > n or segment.last != (segment.end == n - 1):
             msg = (
@@ -410,36 +403,32 @@ def write_eventcap(
         ProcessingError: an output exists or a write failed.
     """
     from mocaprig.calib.calibration import read_calibration
-    from mocaprig.process.eventcap.pipeline import EventcapOptions
     from mocaprig.process.eventcap.run import (
+        _RATE_HZ,
         EventcapResultsWriter,
         ResultsHeader,
         default_outputs,
         load_shape,
+        results_clock,
+        results_ns,
     )
 
     cal = read_calibration(inputs.calibration)
     shape = load_shape(height_m=inputs.height_m, shape_path=inputs.shape)
-    clock = None
-    try:
-        clock = cal.clock(take.davis)
-    except CalibrationError:
+    clock, time_base = results_clock(cal, take.davis)
+    if clock is None:
         _log.info("the calibration maps no clock for %s; results in DAVIS time", take.davis)
-    step = (inputs.options or EventcapOptions()).step_us
     header = ResultsHeader(
         session=inputs.session,
         davis=take.davis,
         batches=take.batches,
         frames=int(take.t_us.size),
-        time_base=cal.reference_clock if clock is not None else "davis",
+        time_base=time_base,
         t_first_davis_us=int(take.t_us[0]),
         world_frame=cal.world_frame,
         detection_source=take.detection_source,
     )
-    t_dev_ns = take.t_us.astype(np.int64) * 1000
-    t_ns = np.asarray(
-        clock.to_reference_ns(t_dev_ns) if clock is not None else t_dev_ns, dtype=np.int64
-    )
+    t_ns = results_ns(clock, take.t_us)
     c3d, bvh = default_outputs(out)
     with EventcapResultsWriter(
         header,
@@ -450,7 +439,7 @@ def write_eventcap(
         calibration=cal,
         template="capsules" if template else "none",
     ) as writer:
-        block = 40 * max(1, 40_000 // step)
+        block = 40 * max(1, 40_000 // round(1e6 / _RATE_HZ))
         for i0 in range(0, take.t_us.size, block):
             i1 = i0 + block
             writer.write(t_ns[i0:i1], take.poses[i0:i1], take.keypoints_m[i0:i1])

@@ -53,7 +53,12 @@ from mocaprig.acquire.events import EVENT_DTYPE
 from mocaprig.acquire.recorder import Attachment, Recorder
 from mocaprig.acquire.recording import Recording
 from mocaprig.acquire.recording_format import SceneUpdateMsg
-from mocaprig.calib.calibration import Calibration, CameraCalibration, read_calibration
+from mocaprig.calib.calibration import (
+    Calibration,
+    CameraCalibration,
+    ClockMapping,
+    read_calibration,
+)
 from mocaprig.calib.calibration_attachment import ATTACHMENT_NAME
 from mocaprig.errors import CalibrationError, ProcessingError, RecordingError, ValidationError
 from mocaprig.process.body.kinematics import EVENTCAP_KEYPOINTS
@@ -89,8 +94,11 @@ __all__ = [
     "keypoint_scene",
     "load_detector",
     "load_shape",
+    "results_clock",
+    "results_ns",
     "run_eventcap",
     "select_davis",
+    "select_frames",
     "template_scene",
 ]
 
@@ -296,6 +304,23 @@ class RecordingFrames(Sequence[ApsFrame]):
         return self._entries[0].exposure_start_us, self._entries[-1].exposure_end_us
 
 
+def select_frames(
+    davis: RecordedDavis,
+    *,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    batches: int | None = None,
+) -> RecordingFrames:
+    """The DAVIS's APS frames exposed inside ``[start_s, end_s]`` (s on the DAVIS timeline,
+    None: unbounded), the first ``batches + 1`` of them when ``batches`` is given."""
+    return RecordingFrames(
+        davis,
+        start_us=None if start_s is None else round(start_s * 1e6),
+        end_us=None if end_s is None else round(end_s * 1e6),
+        limit=None if batches is None else batches + 1,
+    )
+
+
 class RecordingEventSource:
     """An :data:`~.take.EventSource` reading a DAVIS's events from the file per window.
 
@@ -455,6 +480,25 @@ def davis_calibration(cal: Calibration, davis: RecordedDavis, cal_source: str) -
     raise CalibrationError(msg)
 
 
+def results_clock(cal: Calibration, label: str) -> tuple[ClockMapping | None, str]:
+    """The clock mapping of the DAVIS ``label`` and the results' time base: the mapping and
+    the calibration's reference clock, or ``(None, "davis")`` when the calibration maps no
+    clock for it (the results then stay in DAVIS time)."""
+    try:
+        clock = cal.clock(label)
+    except CalibrationError:
+        return None, "davis"
+    return clock, cal.reference_clock
+
+
+def results_ns(clock: ClockMapping | None, t_us: npt.ArrayLike) -> I64:
+    """DAVIS times (µs) as the results' times (int ns on the time base of
+    :func:`results_clock`: through ``clock``, or DAVIS ns when it is None)."""
+    t_dev_ns = np.asarray(t_us).astype(np.int64) * 1000
+    t = clock.to_reference_ns(t_dev_ns) if clock is not None else t_dev_ns
+    return np.asarray(t, dtype=np.int64)
+
+
 # ------------------------------------------------------------------------------ result
 
 
@@ -597,8 +641,10 @@ def _check_outputs(paths: Mapping[str, Path], overwrite: bool) -> None:
 
 def check_coverage(detector: Detector, frames: Sequence[ApsFrame], source: str) -> None:
     """Every used APS frame must have a detection (the batch fit anchors on them)."""
-    for k in range(len(frames)):
-        t = int(frames[k].t_us)
+    # A RecordingFrames knows its frames' times from the index (no image decoded).
+    times = frames.times_us if isinstance(frames, RecordingFrames) else [f.t_us for f in frames]
+    for k, t_k in enumerate(times):
+        t = int(t_k)
         try:
             detector.detect(t, None)
         except (RecordingError, ValidationError, ProcessingError) as err:
@@ -693,12 +739,7 @@ def run_eventcap(
         camera = EventCamera.from_calibration(davis_calibration(cal, dav, cal_source))
         report("index", 0, 2)
         t0 = time.perf_counter()
-        frames = RecordingFrames(
-            dav,
-            start_us=None if start_s is None else round(start_s * 1e6),
-            end_us=None if end_s is None else round(end_s * 1e6),
-            limit=None if batches is None else batches + 1,
-        )
+        frames = select_frames(dav, start_s=start_s, end_s=end_s, batches=batches)
         report("index", 1, 2)
         events = RecordingEventSource(dav)
         report("index", 2, 2)
@@ -712,31 +753,25 @@ def run_eventcap(
             raise ProcessingError(msg)
         detector = load_detector(detections, frames.all_times_us, kind=detections_format)
         check_coverage(detector, frames, str(detections))
-        clock = None
-        try:
-            clock = cal.clock(dav.device.label)
-        except CalibrationError:
+        clock, time_base = results_clock(cal, dav.device.label)
+        if clock is None:
             _log.info(
                 "%s: the calibration maps no clock for %s; results stamped in DAVIS time",
                 session_path,
                 dav.device.label,
             )
-        t_first_us, t_last_us = int(frames[0].t_us), int(frames[len(frames) - 1].t_us)
+        times_us = frames.times_us
+        t_first_us, t_last_us = int(times_us[0]), int(times_us[-1])
         header = ResultsHeader(
             session=session_path,
             davis=dav.device.label,
             batches=len(frames) - 1,
             frames=(t_last_us - t_first_us) // opt.step_us + 1,
-            time_base=cal.reference_clock if clock is not None else "davis",
+            time_base=time_base,
             t_first_davis_us=t_first_us,
             world_frame=cal.world_frame,
             detection_source=detector.source,
         )
-
-        def out_ns(t_us: I64) -> I64:
-            t_dev_ns = t_us.astype(np.int64) * 1000
-            t = clock.to_reference_ns(t_dev_ns) if clock is not None else t_dev_ns
-            return np.asarray(t, dtype=np.int64)
 
         t0 = time.perf_counter()
         stage: dict[str, float] = {}
@@ -755,7 +790,7 @@ def run_eventcap(
                 for k, v in chunk.result.stage_seconds.items():
                     stage[f"{k}_s"] = stage.get(f"{k}_s", 0.0) + v
                 tw = time.perf_counter()
-                writer.write(out_ns(chunk.t_us), chunk.poses, chunk.keypoints_m)
+                writer.write(results_ns(clock, chunk.t_us), chunk.poses, chunk.keypoints_m)
                 t_write += time.perf_counter() - tw
                 report("batches", chunk.batch + 1, chunk.batches)
             report("write", 0, 1)
@@ -874,10 +909,9 @@ class EventcapResultsWriter:
         self._bvh: BvhWriter | None = None
         self._rec: Recorder | None = None
         self._mcap = None if mcap is None else Path(mcap)
-        for p in (self._mcap,):
-            if p is not None and p.exists() and not overwrite:
-                msg = f"{p} exists; pass --overwrite to replace it"
-                raise ProcessingError(msg)
+        if self._mcap is not None and self._mcap.exists() and not overwrite:
+            msg = f"{self._mcap} exists; pass --overwrite to replace it"
+            raise ProcessingError(msg)
         try:
             if c3d is not None:
                 self._c3d = C3DFrameWriter(
@@ -900,7 +934,7 @@ class EventcapResultsWriter:
                     )
                 self._tmp = self._mcap.with_name(f".{self._mcap.name}.{os.getpid()}.part")
                 # The recorder's own diagnostics are stamped on the results' clock: one time
-                # base (the first frame's time until the first block arrives).
+                # base (0 until the first block arrives, then the last frame time written).
                 self._now = [0]
                 self._rec = Recorder(
                     self._tmp,
