@@ -245,12 +245,15 @@ def _choose_pool(
         tuple[D415PulseTiming, dict[str, ClockMapping], list[str], dict[str, Tie], float]
     ],
     opt: CalibrationOptions,
-) -> tuple[D415PulseTiming, dict[str, ClockMapping], list[str], dict[str, Tie], list[str]]:
+) -> tuple[D415PulseTiming, dict[str, ClockMapping], list[str], dict[str, Tie], list[str], bool]:
     """The pooled video clock whose convention the stretches fit best, when clearly so (the
-    other's misfit exceeds it by 0.5 ms and by itself); else the assumed one. Also notes."""
+    other's misfit exceeds it by 0.5 ms and by itself); else the assumed one. Also notes, and
+    whether the video told the convention (True too when there was nothing to choose)."""
     first = pools[0]
-    if len(pools) < 2 or not (math.isfinite(pools[0][4]) and math.isfinite(pools[1][4])):
-        return (*first[:4], [])
+    if len(pools) < 2:
+        return (*first[:4], [], True)
+    if not (math.isfinite(pools[0][4]) and math.isfinite(pools[1][4])):
+        return (*first[:4], [], False)
     best, worst = sorted(pools, key=lambda p: p[4])
     if worst[4] - best[4] > max(500_000.0, best[4]):
         note = (
@@ -258,13 +261,13 @@ def _choose_pool(
             f"offsets fit the pooled clock within {best[4] / 1e3:.0f} µs median, "
             f"{worst[4] / 1e3:.0f} µs under the other convention)"
         )
-        return (*best[:4], [note] if best[0] != opt.pulse_timing else [])
+        return (*best[:4], [note] if best[0] != opt.pulse_timing else [], True)
     note = (
         "clock: the video does not tell the pulse phase (the stretch offsets fit both "
         f"conventions' pooled clocks, {pools[0][4] / 1e3:.0f} / {pools[1][4] / 1e3:.0f} µs "
         f"median): {opt.pulse_timing.describe()} assumed"
     )
-    return (*first[:4], [note])
+    return (*first[:4], [note], False)
 
 
 def _with_timing(
@@ -323,6 +326,44 @@ def _expected_slave_delays(
         return {}
     lag = timing.pulse_lag_ns(float(master.exposure_us) * 1e3)
     return {c.name: lag for c in cams if c.sync_mode == 2 and lag}
+
+
+def _refuse_unobservable_phase(
+    cams: Sequence[CalibCamera],
+    davis_inputs: Sequence[DavisPulses],
+    opt: CalibrationOptions,
+    phase_notes: list[str],
+) -> None:
+    """Without the sync channel, raise when the video could not tell the D415 pulse phase and
+    it matters (a master with an exposure, and a slave or a DAVIS on its pulses); with
+    ``opt.force`` the assumed convention stays and ``phase_notes`` says so.
+
+    Raises:
+        CalibrationError: the phase is needed, not observable, and ``opt.force`` is off."""
+    master = next((c for c in cams if c.sync_mode == 1), None)
+    slaves = [c.name for c in cams if c.sync_mode == 2]
+    if master is None or master.exposure_us is None or not (slaves or davis_inputs):
+        return
+    why = phase_notes[0].removeprefix("clock: ") if phase_notes else "no pooled clock fitted"
+    users = ", ".join([*slaves, *(dp.device for dp in davis_inputs)])
+    if opt.force:
+        phase_notes.append(
+            f"clock: pulse phase NOT observable without the sync channel ({why}); the assumed "
+            f"convention (--force) moves {users} by up to one master exposure "
+            f"({float(master.exposure_us):.0f} µs) if wrong"
+        )
+        return
+    msg = (
+        f"{master.name}: the D415 pulse phase (where the master's sync pulse falls in its "
+        f"exposure) is not observable in this recording without the Vicon sync channel: {why}. "
+        f"It sets the clocks of {users} to within one master exposure "
+        f"({float(master.exposure_us):.0f} µs), so the calibration is refused. Measure it once "
+        "for the rig (docs/d415-timing.md §4) and pass --d415-pulse-at "
+        "exposure-start|readout-start with --no-measure-pulse-phase, or record the sync box's "
+        "toggle on a Vicon analog input (--sync-channel), or pass --force to keep the assumed "
+        "convention"
+    )
+    raise CalibrationError(msg)
 
 
 def calibrate_vicon(
@@ -466,7 +507,7 @@ def calibrate_vicon(
     ties: dict[str, Tie] = {}
     timings_used: list[D415PulseTiming] = []
     phase_notes: list[str] = []
-    for _ in range(2):
+    for pass_ in range(2):
         own: dict[str, ClockMapping] = {}
         for cam in cams:
             t_w, d_w, s_w = stretch_offsets(
@@ -491,12 +532,19 @@ def calibrate_vicon(
                 expected_delays_ns=_expected_slave_delays(cams, timing),
             )
             pools.append((timing, pooled, p_notes, t_ties, _pool_misfit_ns(pooled, clock_fits)))
-        pool_timing, mappings, pool_notes, pool_ties, phase_notes = _choose_pool(pools, opt)
+        pool_timing, mappings, pool_notes, pool_ties, phase_notes, pool_told = _choose_pool(
+            pools, opt
+        )
         ties.clear()
         ties.update(pool_ties)
         video = mappings
         opt_used = _with_pulse_timing(opt, pool_timing)
-        mappings, sync_notes = sync_clocks(sync, video, ties, opt_used, shift_cost, timings_used)
+        # The first pass's poses are coarse: only the final pass may refuse an unobservable
+        # pulse phase.
+        opt_sync = opt_used if pass_ else dataclasses.replace(opt_used, force=True)
+        mappings, sync_notes = sync_clocks(
+            sync, video, ties, opt_sync, shift_cost, timings_used, own=own
+        )
         for cam in cams:
             if opt.clock_method == "claps+speed" and mappings[cam.name] is video[cam.name]:
                 mappings[cam.name] = claps_speed_clock(
@@ -528,6 +576,8 @@ def calibrate_vicon(
                 coarse_inliers=registrations[cam.name].coarse_inliers,
                 coarse_rms_m=registrations[cam.name].coarse_rms_m,
             )  # fmt: skip
+    if not pool_told and not timings_used:
+        _refuse_unobservable_phase(cams, davis_inputs, opt, phase_notes)
     notes.extend(pool_notes)
     notes.extend(phase_notes)
     notes.extend([sync.note] if sync.note else sync_notes)

@@ -157,6 +157,98 @@ def _disagreement_ns(a: ClockMapping, b: ClockMapping) -> float:
     return abs(float(a.to_reference_ns(t)[0] - b.to_reference_ns(t)[0]))
 
 
+_PhaseFit = tuple[D415PulseTiming, ClockMapping, float, int]
+
+#: A convention's reprojection cost must be below this fraction of the other's to choose it.
+_PHASE_COST_RATIO: Final = 0.97
+
+
+def _choose_pulse_phase(
+    m: str,
+    fits: Sequence[_PhaseFit],
+    timings: Sequence[D415PulseTiming],
+    exposure_ns: float,
+    mappings: Mapping[str, ClockMapping],
+    own: Mapping[str, ClockMapping] | None,
+    score: Callable[[str, ClockMapping], float] | None,
+    best_period: Callable[[str, ClockMapping], tuple[ClockMapping, int]],
+    opt: CalibrationOptions,
+) -> tuple[_PhaseFit, str]:
+    """The master's sync clock under the pulse convention the data tell, and a note (see
+    :func:`sync_clocks`); each fit is ``(timing, mapping, |mapping − video| ns, periods)``."""
+    by_timing = {f[0]: f[1] for f in fits}
+    base_t, base = fits[0][0], fits[0][1]
+    cands: list[_PhaseFit] = []
+    for timing in timings:
+        derived = timing not in by_timing
+        mapping = by_timing.get(timing) or dataclasses.replace(
+            base,
+            offset_ns=base.offset_ns
+            + timing.master_frame_delay_ns(exposure_ns)
+            - base_t.master_frame_delay_ns(exposure_ns),
+        )
+        mapping, shift = best_period(m, mapping)
+        cands.append((timing, mapping, float(derived), shift))
+    video = own.get(m) if own is not None else None
+    source = "its own video clock"
+    if video is None or not math.isfinite(video.offset_ns):
+        video, source = mappings[m], "the pooled video clock"
+    gaps = [_disagreement_ns(c[1], video) for c in cands]
+    ranked = sorted(range(len(cands)), key=lambda i: gaps[i])
+    assumed = timings[0]
+    names = " / ".join(c[0].describe() for c in cands)
+    # The video clock tells only if it sits near one convention's clock and far from the other
+    # (it is itself good to ≈ 0.1–1 ms; on a short or poor take it can be off by more).
+    if gaps[ranked[0]] < 0.25 * exposure_ns and gaps[ranked[1]] > 0.75 * exposure_ns:
+        best = cands[ranked[0]]
+        note = (
+            f"clock: pulse phase measured: {best[0].describe()} (the sync clock agrees with "
+            f"{source} within {gaps[ranked[0]] / 1e3:.0f} µs, the other convention "
+            f"{gaps[ranked[1]] / 1e3:.0f} µs off); the slave delay is that convention's "
+            "published value, not measured"
+        )
+        return (best[0], best[1], gaps[ranked[0]], best[3]), note
+    costs = [score(m, c[1]) for c in cands] if score is not None else []
+    if costs and all(math.isfinite(c) for c in costs):
+        lo = int(np.argmin(costs))
+        if costs[lo] < _PHASE_COST_RATIO * costs[1 - lo]:
+            best = cands[lo]
+            note = (
+                f"clock: pulse phase measured: {best[0].describe()} by the reprojection cost of "
+                f"{m}'s frames ({costs[lo]:.4g} vs {costs[1 - lo]:.4g}; {source} is "
+                f"{gaps[lo] / 1e3:.0f} / {gaps[1 - lo] / 1e3:.0f} µs from {names}); the slave "
+                "delay is that convention's published value, not measured"
+            )
+            return (best[0], best[1], gaps[lo], best[3]), note
+    told = (
+        f"{source} is {gaps[0] / 1e3:.0f} / {gaps[1] / 1e3:.0f} µs from the sync clocks of "
+        f"{names} (it tells only within a quarter exposure of one and three quarters of the "
+        f"other; the exposure is {exposure_ns / 1e3:.0f} µs)"
+        + (
+            f", and their reprojection costs ({costs[0]:.4g} / {costs[1]:.4g}) do not differ either"
+            if costs
+            else ""
+        )
+    )
+    keep = next(c for c in cands if c[0] == assumed)
+    if opt.force:
+        note = (
+            f"clock: pulse phase NOT observable in this recording ({told}): {assumed.describe()} "
+            "assumed (--force); a wrong one puts every D415 and DAVIS clock one exposure out"
+        )
+        _log.info("%s", note)
+        return (keep[0], keep[1], gaps[cands.index(keep)], keep[3]), note
+    msg = (
+        f"{m}: the D415 pulse phase (where the master's sync pulse falls in its exposure) is "
+        f"not observable in this recording: {told}. A wrong guess would put every D415 and "
+        "DAVIS clock one exposure out, so the calibration is refused. Measure it once for "
+        "the rig (docs/d415-timing.md §4) and pass --d415-pulse-at exposure-start|readout-start "
+        "with --no-measure-pulse-phase, or record a take with faster marker motion, or pass "
+        "--force to keep the assumed convention"
+    )
+    raise CalibrationError(msg)
+
+
 def sync_clocks(
     sync: SyncInputs,
     mappings: Mapping[str, ClockMapping],
@@ -164,6 +256,8 @@ def sync_clocks(
     opt: CalibrationOptions,
     score: Callable[[str, ClockMapping], float] | None = None,
     timing_out: list[D415PulseTiming] | None = None,
+    *,
+    own: Mapping[str, ClockMapping] | None = None,
 ) -> tuple[dict[str, ClockMapping], list[str]]:
     """The D415 clocks from the sync channel: the master's by its edges (the video mapping as
     the pairing prior), every camera tied to the pool's pivot (``ties``, from
@@ -179,10 +273,19 @@ def sync_clocks(
     of its frames) is lowest; no move on a tie.
 
     Where the master's pulse falls (its exposure start or its readout start) moves its sync
-    clock by one whole exposure, which the video clock resolves: with
-    ``opt.measure_pulse_phase`` both conventions are fitted and the one whose clock agrees with
-    the video is kept when the other disagrees by half an exposure more; otherwise the assumed
-    one stays and a note says so. The convention used is appended to ``timing_out``."""
+    clock by one whole exposure. With ``opt.measure_pulse_phase`` both conventions' clocks are
+    made (a convention whose edges do not pair within the prior is the other's clock moved by
+    the difference of their frame delays) and the data choose: the one that agrees with the
+    master's video clock (``own``: its clock from its own frames, which no convention enters;
+    else ``mappings``) within a quarter exposure when the other is three quarters of an
+    exposure off, else the one whose
+    reprojection cost (``score``) is clearly lower. When neither tells, the phase is not
+    observable in this recording: :class:`CalibrationError` names it and what to pass (with
+    ``opt.force`` the assumed convention stays and a note says so). The convention used is
+    appended to ``timing_out``.
+
+    Raises:
+        CalibrationError: the pulse phase is not observable and ``opt.force`` is off."""
     from mocaprig.calib.sync_edges import clock_from_sync_edges
 
     out = dict(mappings)
@@ -213,7 +316,7 @@ def sync_clocks(
     # Without the master's exposure both conventions give the same frame delay: one fit.
     timings = opt.pulse_timings() if sync.master_exposure_ns is not None else (opt.pulse_timing,)
     assumed = timings[0]
-    fits: list[tuple[D415PulseTiming, ClockMapping, float, int]] = []
+    fits: list[_PhaseFit] = []
     failure: CalibrationError | None = None
     for timing in timings:
         delay = (
@@ -233,37 +336,19 @@ def sync_clocks(
         except CalibrationError as err:
             failure = failure or err
             continue
-        fit, shift = best_period(m, fit)
-        fits.append((timing, fit, _disagreement_ns(fit, mappings[m]), shift))
+        fits.append((timing, fit, 0.0, 0))
     if not fits:
         _log.warning("%s", failure)
         return out, [f"clock: {failure}; the D415 clocks come from the video"]
     phase_note = ""
-    chosen = next((f for f in fits if f[0] is assumed), fits[0])
     if len(timings) == 2 and sync.master_exposure_ns is not None:
-        ranked = sorted(fits, key=lambda f: f[2])
-        margin = 0.5 * sync.master_exposure_ns
-        if len(ranked) == 2 and ranked[1][2] - ranked[0][2] > margin:
-            chosen = ranked[0]
-            phase_note = (
-                f"clock: pulse phase measured: {chosen[0].describe()} (the sync clock agrees "
-                f"with the video within {ranked[0][2] / 1e3:.0f} µs, the other convention "
-                f"{ranked[1][2] / 1e3:.0f} µs off); the slave delay is that convention's "
-                "published value, not measured"
-            )
-        elif len(ranked) == 1:
-            phase_note = (
-                f"clock: pulse phase: only {ranked[0][0].describe()} pairs the edges with the "
-                "frames; kept, not confirmed by the video"
-            )
-            chosen = ranked[0]
-        else:
-            phase_note = (
-                "clock: pulse phase not resolved by the video (the two conventions' sync clocks "
-                f"are {ranked[0][2] / 1e3:.0f} and {ranked[1][2] / 1e3:.0f} µs from it, less "
-                f"than half an exposure apart): {assumed.describe()} assumed"
-            )
-            chosen = next((f for f in fits if f[0] is assumed), ranked[0])
+        chosen, phase_note = _choose_pulse_phase(
+            m, fits, timings, sync.master_exposure_ns, mappings, own, score, best_period, opt
+        )
+    else:
+        first = next((f for f in fits if f[0] is assumed), fits[0])
+        moved_map, periods = best_period(m, first[1])
+        chosen = (first[0], moved_map, 0.0, periods)
     timing, mmap, _, shift = chosen
     note_move(m, shift)
     if timing_out is not None:

@@ -249,6 +249,10 @@ STRETCH_SIGMA_FLOOR_NS: Final = 250_000.0
 #: Stretches farther than this many robust σ from the line are rejected, then it is refitted.
 STRETCH_REJECT_SIGMA: Final = 3.0
 
+#: A video clock line steeper than this (ppm) is not believed (D415 and Vicon crystals are
+#: within ±50 ppm): :func:`line_clock` keeps the offset alone.
+VIDEO_DRIFT_LIMIT_PPM: Final = 1000.0
+
 
 def line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMapping:
     """A device → Vicon mapping through per-stretch offsets (ns, at device times ns): a
@@ -258,19 +262,47 @@ def line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMa
     Each stretch is weighted by ``1/(σ² + floor²)`` (:data:`STRETCH_SIGMA_FLOOR_NS`); stretches
     beyond :data:`STRETCH_REJECT_SIGMA` robust σ (MAD of the weighted residuals) are rejected
     and the line refitted, until none is (at least 3 kept). The reported σ are scaled by the
-    residual χ² when it exceeds 1."""
+    residual χ² when it exceeds 1. A slope beyond :data:`VIDEO_DRIFT_LIMIT_PPM` (a short or
+    poorly timed take) is not believed: the offset alone is kept, with a warning."""
     ok = np.isfinite(sigma_ns) & np.isfinite(delta_ns) & np.isfinite(t_dev)
     t_dev, delta_ns, sigma_ns = t_dev[ok], delta_ns[ok], sigma_ns[ok]
     if len(t_dev) == 0:
         msg = f"{device}: no stretch gave a finite clock offset"
         raise CalibrationError(msg)
     w = 1.0 / (sigma_ns**2 + STRETCH_SIGMA_FLOOR_NS**2)
-    keep = np.ones(len(t_dev), dtype=bool)
     anchor = round(float((w * t_dev).sum() / w.sum()))
     x = (t_dev - anchor) * 1e-9
-    line = len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9
+    line = bool(len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9)
+    coef, cov = _robust_line(device, x, delta_ns, w, line=line)
+    if line and abs(float(coef[1]) * 1e-3) > VIDEO_DRIFT_LIMIT_PPM:
+        # No crystal drifts this much: the stretches are too few or too noisy to fix a slope.
+        _log.warning(
+            "%s: the video clock's drift came out %.0f ppm over %.1f s of stretches (beyond "
+            "%g ppm): kept the mean offset with no drift; a longer take with moving markers "
+            "times the camera better",
+            device, float(coef[1]) * 1e-3, float(np.ptp(t_dev)) * 1e-9, VIDEO_DRIFT_LIMIT_PPM,
+        )  # fmt: skip
+        line = False
+        coef, cov = _robust_line(device, x, delta_ns, w, line=False)
+    return ClockMapping(
+        device=device,
+        reference="vicon",
+        offset_ns=round(float(coef[0])),
+        drift_ppm=float(coef[1]) * 1e-3 if line else 0.0,
+        anchor_ns=anchor,
+        offset_sigma_ns=math.sqrt(cov[0, 0]),
+        drift_sigma_ppm=math.sqrt(cov[1, 1]) * 1e-3 if line else math.nan,
+        method="reprojection",
+    )
+
+
+def _robust_line(device: str, x: F64, delta_ns: F64, w: F64, *, line: bool) -> tuple[F64, F64]:
+    """Weighted fit of ``delta_ns`` against ``x`` (s from the anchor): offset and slope
+    (ns/s) with ``line``, else the offset alone; outliers rejected one by one (see
+    :func:`line_clock`). Returns the coefficients and their covariance (scaled by χ²)."""
+    keep = np.ones(len(x), dtype=bool)
     A = np.stack([np.ones_like(x), x], axis=1) if line else np.ones((len(x), 1))
-    for _ in range(len(t_dev)):
+    for _ in range(len(x)):
         wk = w * keep
         cov = np.linalg.inv(A.T @ (A * wk[:, None]))
         coef = cov @ (A.T @ (wk * delta_ns))
@@ -284,17 +316,8 @@ def line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMa
     if n_rej:
         _log.info("%s: clock line: %d of %d stretches rejected", device, n_rej, len(keep))
     chi2 = float((z[keep] ** 2).sum()) / max(int(keep.sum()) - A.shape[1], 1)
-    cov = cov * max(chi2, 1.0)
-    return ClockMapping(
-        device=device,
-        reference="vicon",
-        offset_ns=round(float(coef[0])),
-        drift_ppm=float(coef[1]) * 1e-3 if line else 0.0,
-        anchor_ns=anchor,
-        offset_sigma_ns=math.sqrt(cov[0, 0]),
-        drift_sigma_ppm=math.sqrt(cov[1, 1]) * 1e-3 if line else math.nan,
-        method="reprojection",
-    )
+    scaled = np.asarray(cov * max(chi2, 1.0), dtype=np.float64)
+    return coef, scaled
 
 
 def claps_speed_clock(

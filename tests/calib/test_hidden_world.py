@@ -4,8 +4,11 @@ the motion; and a refusal naming what the data cannot tell."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -13,6 +16,7 @@ import pytest
 
 from mocaprig.calib.calibration import ClockMapping
 from mocaprig.calib.sync_edges import find_sync_edges
+from mocaprig.calib.vicon_calibration import _refuse_unobservable_phase
 from mocaprig.calib.vicon_calibration_davis import DavisMotion, motion_period_shift
 from mocaprig.calib.vicon_calibration_options import CalibrationOptions, D415PulseTiming
 from mocaprig.calib.vicon_calibration_sync import SyncInputs, sync_clocks
@@ -98,20 +102,60 @@ def test_the_video_clock_tells_the_pulse_phase_when_the_assumption_is_wrong(assu
         assert abs(_errors(blind["m"], rig)[0]) == pytest.approx(8.5e6, abs=10_000.0)
 
 
-def test_a_video_clock_too_poor_to_tell_the_phase_keeps_the_assumption_and_says_so() -> None:
+def _halfway_rig() -> tuple[SyncInputs, ClockMapping, Callable[[ClockMapping], float]]:
+    """The master's sync inputs, a video clock 4.25 ms off (halfway between the two
+    conventions' sync clocks) and the mapping's true offset error (ns)."""
     rig = _rig(5, seconds=20.0)
     edges = find_sync_edges(rig.t_ns, rig.volts, channel="D415_SYNC")
-    opt = CalibrationOptions()
     sync = SyncInputs(
-        edges, "m", rig.frames_dev_ns, opt.pulse_timing.master_frame_delay_ns(8.5e6),
-        master_exposure_ns=8.5e6,
+        edges, "m", rig.frames_dev_ns,
+        CalibrationOptions().pulse_timing.master_frame_delay_ns(8.5e6), master_exposure_ns=8.5e6,
     )  # fmt: skip
-    # A video clock 4.25 ms off sits halfway between the two conventions' sync clocks.
-    prior = _prior(rig, offset_err_ns=-4.25e6, drift_err_ppm=0.0)
+    return sync, _prior(rig, offset_err_ns=-4.25e6, drift_err_ppm=0.0), lambda m: _errors(m, rig)[0]
+
+
+def test_a_pulse_phase_nothing_tells_refuses_the_calibration_naming_it() -> None:
+    sync, prior, _ = _halfway_rig()
+    with pytest.raises(CalibrationError, match="pulse phase") as err:
+        sync_clocks(sync, {"m": prior}, {}, CalibrationOptions())
+    assert "--d415-pulse-at" in str(err.value)
+    assert "not observable" in str(err.value)
+    # Told (a measured rig), or forced: the convention given stays, the forced one with a note.
+    told = CalibrationOptions(d415_pulse_at="exposure-start", measure_pulse_phase=False)
+    sync_clocks(sync, {"m": prior}, {}, told)
     used: list[D415PulseTiming] = []
-    _, notes = sync_clocks(sync, {"m": prior}, {}, opt, timing_out=used)
+    _, notes = sync_clocks(sync, {"m": prior}, {}, CalibrationOptions(force=True), timing_out=used)
     assert used[-1].pulse_at == "exposure-start"
-    assert any("pulse phase not resolved by the video" in n for n in notes)
+    assert any("pulse phase NOT observable" in n for n in notes)
+
+
+@pytest.mark.parametrize("assumed", ["exposure-start", "readout-start"])
+def test_the_masters_own_video_clock_tells_the_phase_the_pooled_one_cannot(assumed: str) -> None:
+    """The pooled clock is pulled halfway by the slaves' convention-dependent delays; the
+    master's clock from its own frames (0.5 ms off) is not."""
+    sync, pooled, error_ns = _halfway_rig()
+    own = dataclasses.replace(pooled, offset_ns=pooled.offset_ns + round(3.75e6))
+    opt = CalibrationOptions(d415_pulse_at=assumed)  # type: ignore[arg-type]
+    used: list[D415PulseTiming] = []
+    out, notes = sync_clocks(sync, {"m": pooled}, {}, opt, timing_out=used, own={"m": own})
+    assert used[-1].pulse_at == "exposure-start"
+    assert abs(error_ns(out["m"])) < 5_000.0
+    assert any("pulse phase measured" in n and "own video clock" in n for n in notes)
+
+
+def test_the_reprojection_cost_tells_the_phase_when_the_video_clock_cannot() -> None:
+    sync, prior, error_ns = _halfway_rig()
+    used: list[D415PulseTiming] = []
+
+    def cost(_name: str, m: ClockMapping) -> float:
+        # A moving marker set reprojects worse the further the clock is out.
+        return 1.0 + abs(error_ns(m)) / 1e6
+
+    opt = CalibrationOptions(d415_pulse_at="readout-start")
+    out, notes = sync_clocks(sync, {"m": prior}, {}, opt, cost, used)
+    assert used[-1].pulse_at == "exposure-start"
+    assert abs(error_ns(out["m"])) < 5_000.0
+    assert any("by the reprojection cost" in n for n in notes)
 
 
 # ------------------------------------------------------------------- DAVIS pairing by motion
@@ -159,3 +203,28 @@ def test_motion_that_cannot_tell_the_periods_apart_is_refused_naming_the_pairing
     mapping = ClockMapping("davis/x", "vicon", 0, 0.0, 0)
     with pytest.raises(CalibrationError, match="whole-period shift is unobservable"):
         motion_period_shift("davis/x", flat, mapping, vicon_at, PERIOD_NS)
+
+
+# ------------------------------------------------------- pulse phase without the sync channel
+
+
+def _cams(*modes: int) -> list[Any]:
+    """Stand-ins for ``CalibCamera``: the helper reads name, sync mode and exposure only."""
+    return [
+        SimpleNamespace(name=f"d415/{k}", sync_mode=m, exposure_us=8500)
+        for k, m in enumerate(modes)
+    ]
+
+
+def test_without_the_sync_channel_an_untold_phase_refuses_when_a_slave_depends_on_it() -> None:
+    untold = ["clock: the video does not tell the pulse phase (...)"]
+    with pytest.raises(CalibrationError, match="not observable") as err:
+        _refuse_unobservable_phase(_cams(1, 2), [], CalibrationOptions(), list(untold))
+    assert "--d415-pulse-at" in str(err.value)
+    assert "d415/1" in str(err.value)
+    notes = list(untold)
+    _refuse_unobservable_phase(_cams(1, 2), [], CalibrationOptions(force=True), notes)
+    assert any("NOT observable" in n for n in notes)
+    # Nothing depends on it: a master alone, or cameras not on hardware sync.
+    _refuse_unobservable_phase(_cams(1), [], CalibrationOptions(), list(untold))
+    _refuse_unobservable_phase(_cams(0, 0), [], CalibrationOptions(), list(untold))
