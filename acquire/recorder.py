@@ -738,14 +738,30 @@ class Recorder:
                 self._disk_full(part, err)
                 return
             _log.exception("recorder writer failed on %s", part.path)
-            f = self.fault("write-error", "recorder", f"{err!r} while writing {part.path}")
+            f = self._note_fault("write-error", "recorder", f"{err!r} while writing {part.path}")
+            fs = self._streams[self._faults_handle().index]
+            data = f.to_log().encode()
+            written = False
             with contextlib.suppress(Exception):  # into the file if it still takes it
-                fs = self._streams[self._faults_handle().index]
-                part.write(fs, f.t_ns, fs.written, f.to_log().encode())
+                part.write(fs, f.t_ns, fs.written, data)
+                written = True
             with self._lock:
                 self._error = err
                 if self._stop_reason in (None, StopReason.REQUESTED):
                     self._stop_reason = StopReason.WRITE_ERROR
+                # Nothing more is written: what is still queued is counted dropped, and the
+                # fault itself as written or dropped (it is in ``faults`` either way).
+                for s in self._streams:
+                    s.dropped += len(s.queue)
+                    s.queue.clear()
+                    s.queued_bytes = 0
+                fs.received += 1
+                if written:
+                    fs.written += 1
+                    fs.bytes_written += len(data)
+                else:
+                    fs.dropped += 1
+                self._room.notify_all()
             self._stop.set()
             with contextlib.suppress(Exception):
                 part.finish(self._summary_metadata(part))
@@ -874,7 +890,13 @@ class Recorder:
                         s.queued_bytes -= n
                         s.dropped += 1
                     continue
-                part.write(s, log_time, seq, data)
+                try:
+                    part.write(s, log_time, seq, data)
+                except BaseException:
+                    with self._lock:  # the message in hand is lost with the write: count it
+                        s.queued_bytes -= n
+                        s.dropped += 1
+                    raise
                 with self._lock:
                     s.queued_bytes -= n
                     s.written += 1

@@ -47,14 +47,15 @@ Vicon markers and the intrinsics fixed. A camera whose reprojection RMS exceeds 
 clocks come from its edges instead (µs, sub-ppm); the notes say which was used. Relating a
 D415 frame (stamped mid-exposure) to a sync pulse needs where the master's pulse falls, which
 is undocumented for the D415: exposure-start or readout-start (Intel's answers for the D4xx
-family). The calibration fits the clocks under both and keeps the one they fit; when they do
-not tell, --d415-pulse-at (default exposure-start) stays and a note says so
-(--no-measure-pulse-phase: always --d415-pulse-at; measure it with the LED test of
-docs/d415-timing.md §4). A wrong one moves the sync-channel and DAVIS clocks by about one
-exposure, or leaves them unpaired. The sync box's latency (--sync-latency-us) and a slave's
-trigger delay are not visible in a recording: they stay assumptions, each noted with its
-effect. The calibration file records the convention used (statistics
-d415_pulse_at_readout_start, d415_slave_trigger_delay_us).
+family). The calibration makes the clocks under both and keeps the one the data tell (the
+master's own video clock, else its reprojection cost); when nothing tells and a slave or the
+DAVIS depends on it, the calibration is refused (exit 1) naming it: measure it once with the
+LED test of docs/d415-timing.md §4 and pass --d415-pulse-at with --no-measure-pulse-phase
+(--force keeps --d415-pulse-at, default exposure-start, with a note). A wrong one moves the
+sync-channel and DAVIS clocks by about one exposure, or leaves them unpaired. The sync box's
+latency (--sync-latency-us) and a slave's trigger delay are not visible in a recording: they
+stay assumptions, each noted with its effect. The calibration file records the convention
+used (statistics d415_pulse_at_readout_start, d415_slave_trigger_delay_us).
 
 examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml
@@ -65,6 +66,8 @@ examples:
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel "Sync.1"
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-channel none
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --d415-pulse-at readout-start
+  mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --d415-pulse-at readout-start \
+      --no-measure-pulse-phase
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --slave-trigger-delay-us 790
   mocaprig calibrate vicon session.mcap trial.c3d --out calib.toml --sync-latency-us 12.5
 """
@@ -115,7 +118,11 @@ def register_calibrate(subparsers: argparse._SubParsersAction[argparse.ArgumentP
         metavar="DIR",
         help="write a report: figures, summary.json and index.html (open it in a browser)",
     )
-    vic.add_argument("--force", action="store_true", help="write even above the thresholds")
+    vic.add_argument(
+        "--force",
+        action="store_true",
+        help="write even above the thresholds or with an unobservable pulse phase (noted)",
+    )
     vic.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     vic.add_argument("--max-rms-px", type=float, default=None, help="refusal threshold (px)")
     vic.add_argument("--min-inliers", type=int, default=None, help="refusal threshold")

@@ -145,7 +145,8 @@ class CalibrationOptions:
         min_static_frames: Fewest still D415 frames a camera needs.
         max_rms_px: Refusal threshold on the reprojection RMS (px).
         min_inliers: Refusal threshold on the inlier observations per camera.
-        force: Write the calibration even above the thresholds (the figures are kept).
+        force: Write the calibration even above the thresholds (the figures are kept), or
+            with a D415 pulse phase the recording cannot tell (the assumed one, noted).
         cameras: ``"d415/<serial>"`` labels to calibrate; None = every D415 of the recording.
         seed: Seed of the coarse alignment's sampling.
         unit: Length unit of the Vicon file when it does not say (``"mm"``, ``"cm"``, ``"m"``).
@@ -170,11 +171,12 @@ class CalibrationOptions:
             value (:data:`SLAVE_TRIGGER_DELAY_US`: 100 µs with ``exposure-start``, 770 µs with
             ``readout-start``). Undocumented for the D415 (realsense-d415.md §2.2): measure
             it (LED flash test) for a real rig.
-        measure_pulse_phase: With the Vicon sync channel, fit the master's clock under both
-            conventions and keep the one the video clock agrees with (they differ by one whole
-            exposure; the video clock is good to a fraction of it); when the video cannot tell
-            (its clock off by a quarter exposure or more), ``d415_pulse_at`` stays. False:
-            always ``d415_pulse_at``. The slave trigger delay is never measured (a video clock
+        measure_pulse_phase: Make the clocks under both conventions and keep the one the
+            data tell (with the sync channel: the master's own video clock, else its
+            reprojection cost; without: the pooled video clock's fit); they differ by one whole
+            exposure. When nothing tells and a slave or a DAVIS depends on it, the calibration
+            is refused (``force``: ``d415_pulse_at`` stays, noted). False: always
+            ``d415_pulse_at``. The slave trigger delay is never measured (a video clock
             is ≈ 0.1–0.5 ms good, the delay's range a few hundred µs): it stays an assumption.
     """
 

@@ -383,3 +383,46 @@ def test_small_filesystem_enospc_ends_the_file_at_its_last_record_with_the_fault
     assert [f.kind for f in inf.faults] == ["disk-full"]
     with Recording(p) as r:  # no index: read linearly
         assert sum(1 for _ in r.messages("/d415/1/depth")) > 5
+
+
+def test_a_write_error_stops_the_recording_and_accounts_for_every_message(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An I/O error (not a full disk) on a data message: the recorder stops with
+    ``write-error``, the fault goes into the file, and every message received is counted
+    written or dropped (none vanishes between the two)."""
+    import errno
+
+    from mocaprig.acquire import recorder as recorder_mod
+
+    real_write = recorder_mod._Part.write
+    calls = {"data": 0}
+
+    def failing_write(part: object, s: object, log_time: int, seq: int, data: bytes) -> None:
+        if getattr(getattr(s, "handle", None), "topic", "") != "/faults":
+            calls["data"] += 1
+            if calls["data"] > 30:
+                raise OSError(errno.EIO, "Input/output error")
+        real_write(part, s, log_time, seq, data)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(recorder_mod._Part, "write", failing_write)
+    p = tmp_path / "a.mcap"
+    rec = Recorder(p, compression="none")
+    rec.start()
+    h = rec.add_stream("/syncbox/pulses", SyncPulses)
+    for k in range(500):
+        if rec.stopped.is_set():
+            break
+        rec.put(h, SyncPulses(k, 1000 * k))
+        time.sleep(0.001)
+    rec.stopped.wait(5.0)
+    rec.close()
+    assert rec.stop_reason is StopReason.WRITE_ERROR
+    with pytest.raises(RecordingError):
+        rec.raise_if_failed()
+    assert [f.kind for f in rec.faults] == ["write-error"]
+    for st in rec.status().streams:
+        assert st.received == st.written + st.dropped, st
+    faults = next(st for st in rec.status().streams if st.topic == "/faults")
+    assert faults.written == 1
+    assert "write-error" in [f.kind for f in info(p).faults]
