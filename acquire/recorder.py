@@ -803,6 +803,13 @@ class Recorder:
             fs.received += 1  # the fault goes into the file's ending, if that fits
             fs.written += 1
             fs.bytes_written += len(data)
+            if not part.finished:
+                # The cut back to the last whole record loses what was written since.
+                for s in self._streams:
+                    n, b = part.pending.get(s.handle.index, (0, 0))
+                    s.written -= n
+                    s.dropped += n
+                    s.bytes_written -= b
             self._room.notify_all()
         if part.finished:  # the next part could not be made: this one is complete
             self._salvaged = True
@@ -983,6 +990,9 @@ class _Part:
         self._final_size = 0
         self.durable = 0  # file offset up to which every record reached the OS (a boundary)
         self.finished = False
+        # Messages (count, bytes) per stream index written since the last record the OS took
+        # whole (:attr:`durable`): what a cut back to it would lose.
+        self.pending: dict[int, tuple[int, int]] = {}
 
     def begin(
         self, metadata: Mapping[str, Mapping[str, str]], attachments: Sequence[Attachment]
@@ -1039,6 +1049,10 @@ class _Part:
             # The message closed a chunk (by size): push it to the OS, a boundary to cut back to.
             self.file.flush()
             self.durable = pos
+            self.pending.clear()
+        else:
+            n, b = self.pending.get(s.handle.index, (0, 0))
+            self.pending[s.handle.index] = (n + 1, b + len(data))
         if self._chunk_since is None:
             self._chunk_since = time.monotonic()
 
@@ -1050,6 +1064,7 @@ class _Part:
         if self.rec.fsync:
             os.fsync(self.file.fileno())
         self.durable = self.file.tell()
+        self.pending.clear()
         self._chunk_since = None
 
     def tell(self) -> int:
