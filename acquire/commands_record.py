@@ -159,7 +159,9 @@ def recording_info(path: Path, *, as_json: bool) -> int:
     """``mocaprig info``: topics, counts, rates, drops, counter gaps, chunks."""
     from mocaprig.acquire.recording import info
 
-    inf = info(path)
+    bar = ProgressBar(f"info {path.name}", unit="kB")
+    inf = info(path, progress=lambda done, total: bar(done // 1000, total // 1000))
+    bar.finish()
     d = inf.as_dict()
     if as_json:
         emit_json(d)
@@ -240,7 +242,9 @@ def recover_command(src: Path, out: Path, *, as_json: bool) -> int:
     """``mocaprig recover``: exit 0 = nothing lost, 3 = something lost, 1 = nothing found."""
     from mocaprig.acquire.recording import recover
 
-    rep = recover(src, out)
+    bar = ProgressBar(f"recover {src.name}", unit="kB")
+    rep = recover(src, out, progress=lambda done, total: bar(done // 1000, total // 1000))
+    bar.finish()
     code = 0 if rep.lossless else (3 if rep.messages else 1)
     if as_json:
         emit_json(

@@ -21,7 +21,7 @@ from __future__ import annotations
 import io
 import logging
 import struct
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -206,8 +206,9 @@ class ScanReport:
 class _LinearScan:
     """Linear scan of an MCAP file that tolerates a missing summary and a truncated tail."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, progress: Callable[[int, int], None] | None = None) -> None:
         self.path = path
+        self.progress = progress  # (bytes scanned, file size), after each top-level record
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.report = ScanReport(0, 0, False, 0)
@@ -238,6 +239,8 @@ class _LinearScan:
                     error = f"{type(err).__name__}: {err}"
                     break
                 good_end = f.tell()
+                if self.progress is not None:
+                    self.progress(good_end, size)
                 if isinstance(rec, DataEnd):
                     in_summary = True
                 elif isinstance(rec, Footer):
@@ -759,8 +762,9 @@ class RecordingInfo:
         }
 
 
-def info(path: Path) -> RecordingInfo:
+def info(path: Path, *, progress: Callable[[int, int], None] | None = None) -> RecordingInfo:
     """Summarise a recording by reading every complete chunk (works without a summary).
+    ``progress(bytes_scanned, file_bytes)`` is called as the scan goes.
 
     Raises:
         RecordingError: the file is missing or not MCAP.
@@ -771,7 +775,7 @@ def info(path: Path) -> RecordingInfo:
         channels = r.channels
         meta = r.metadata()
         attachments = tuple(a.name for a in r.attachments())
-    scan = _LinearScan(path)
+    scan = _LinearScan(path, progress)
     counts: dict[str, int] = {}
     nbytes: dict[str, int] = {}
     first: dict[str, int] = {}
@@ -942,8 +946,15 @@ class RecoverReport:
         return self.scan.ok
 
 
-def recover(source: Path, output: Path, *, compression: str = "zstd") -> RecoverReport:
-    """Rewrite a recording (typically one that crashed) into a new file with a full index.
+def recover(
+    source: Path,
+    output: Path,
+    *,
+    compression: str = "zstd",
+    progress: Callable[[int, int], None] | None = None,
+) -> RecoverReport:
+    """Rewrite a recording (typically one that crashed) into a new file with a full index;
+    ``progress(bytes_read, source_bytes)`` is called as the source is read.
 
     Every message of every complete chunk, every metadata record and attachment is copied;
     a truncated or corrupt chunk is lost and reported. A ``mocaprig.recovery`` metadata record
@@ -963,7 +974,7 @@ def recover(source: Path, output: Path, *, compression: str = "zstd") -> Recover
     if compression not in comp:
         msg = f"compression must be one of {sorted(comp)}, got {compression!r}"
         raise RecordingError(msg)
-    scan = _LinearScan(source)
+    scan = _LinearScan(source, progress)
     n_msg = n_meta = n_att = 0
     try:
         with output.open("xb") as f:

@@ -102,3 +102,29 @@ def test_democap_run_draws_its_instants_and_is_quiet_under_json(
     out, err = capsys.readouterr()
     assert "\r" not in err
     assert json.loads(out)["instants"] > 0
+
+
+def test_info_and_recover_draw_the_bytes_read_and_are_quiet_under_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import numpy as np
+
+    from mocaprig.acquire.recorder import Recorder
+    from mocaprig.acquire.recording_format import ImageMsg
+
+    src = tmp_path / "s.mcap"
+    img = np.random.default_rng(0).integers(0, 65535, (120, 160)).astype(np.uint16)
+    with Recorder(src, compression="none") as rec:
+        h = rec.add_stream("/d415/1/depth", ImageMsg)
+        for _ in range(40):
+            rec.put(h, ImageMsg(img, "16UC1"))
+    assert main(["--progress", "always", "info", str(src)]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"\rinfo s\.mcap \[#+\] (\d+)/\1 kB", err), err
+    assert main(["--progress", "always", "recover", str(src), str(tmp_path / "r.mcap")]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"\rrecover s\.mcap \[#+\] (\d+)/\1 kB", err), err
+    assert main(["--progress", "always", "info", str(src), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert "\r" not in err
+    assert json.loads(out)["indexed"] is True
