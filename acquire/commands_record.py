@@ -19,12 +19,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from mocaprig.acquire.export import ExportFormat, ExportResult, export_topic
-from mocaprig.acquire.live_view import LiveView
+from mocaprig.acquire.live_view import LiveView, load_live_scene
 from mocaprig.acquire.mocks import load_mock_factory
 from mocaprig.acquire.record_session import MockFaults, RecordingSummary, run_recording
 from mocaprig.acquire.recorder import StreamSource
 from mocaprig.acquire.rpg_text import import_events_txt
 from mocaprig.cli import add_json_flag, emit_json
+from mocaprig.errors import ValidationError
 from mocaprig.progress import ProgressBar
 
 if TYPE_CHECKING:
@@ -72,6 +73,7 @@ def record(
     live: bool = False,
     live_port: int = 8765,
     live_host: str = "127.0.0.1",
+    live_calibration: Path | None = None,
 ) -> int:
     """``mocaprig record``: record the rig (a rig file's devices, the mock rig, or given
     ``sources``) into ``out`` (:func:`mocaprig.acquire.record_session.run_recording`).
@@ -80,7 +82,9 @@ def record(
     (``--mock-faults``, loaded through the ``mocaprig.mocks`` entry point ``faults``).
     ``live``: serve the streams to Foxglove on ``live_host:live_port`` while recording
     (:class:`mocaprig.acquire.live_view.LiveView`; RecordingError when foxglove-sdk is missing
-    or the port is taken).
+    or the port is taken). ``live_calibration``: with ``live``, the measured markers, the fused
+    cloud and the DeMoCap joints in 3D (the ``mocaprig.live_scene`` entry point ``democap``;
+    ValidationError without ``live``).
 
     Returns the exit code of :func:`record_outcome` (0: as asked; 3: a device was lost, its
     streams have gaps; 128 + the signal: stopped by SIGINT/SIGTERM); a full disk or a write
@@ -89,7 +93,11 @@ def record(
     faults: MockFaults | None = (
         load_mock_factory("faults")(mock_faults) if isinstance(mock_faults, str) else mock_faults
     )
-    view = LiveView(host=live_host, port=live_port) if live else None
+    if live_calibration is not None and not live:
+        msg = "--calib shows the markers and joints on the live view: it needs --live"
+        raise ValidationError(msg)
+    scene = load_live_scene("democap", live_calibration) if live_calibration is not None else None
+    view = LiveView(host=live_host, port=live_port, scene=scene) if live else None
     with view if view is not None else contextlib.nullcontext():
         if view is not None:
             print(f"live view: {view.url} (Foxglove: Open connection -> Foxglove WebSocket)",
@@ -414,6 +422,13 @@ def register_record(subparsers: Any) -> None:
     )
     p.add_argument("--port", type=int, default=8765, help="--live: TCP port (0: any free port)")
     p.add_argument(
+        "--calib",
+        type=Path,
+        default=None,
+        metavar="CALIB.toml",
+        help="--live: also the measured markers and DeMoCap joints in 3D (a rig calibration)",
+    )
+    p.add_argument(
         "--live-host",
         default="127.0.0.1",
         help="--live: address to listen on (0.0.0.0: every interface; default local only)",
@@ -438,6 +453,7 @@ def register_record(subparsers: Any) -> None:
             live=a.live,
             live_port=a.port,
             live_host=a.live_host,
+            live_calibration=a.calib,
         )
     )
 

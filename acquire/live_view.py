@@ -47,8 +47,9 @@ import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Final, Literal, Self
+from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, Self
 
 import numpy as np
 import numpy.typing as npt
@@ -68,7 +69,15 @@ if TYPE_CHECKING:
 
     from mocaprig.acquire.recorder import Recorder
 
-__all__ = ["LIVE_STATUS_TOPIC", "LiveClient", "LiveStats", "LiveView"]
+__all__ = [
+    "LIVE_SCENE_GROUP",
+    "LIVE_STATUS_TOPIC",
+    "LiveClient",
+    "LiveScene",
+    "LiveStats",
+    "LiveView",
+    "load_live_scene",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -185,6 +194,51 @@ def _xyz(v: npt.NDArray[Any]) -> dict[str, float]:
     return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
 
 
+class LiveScene(Protocol):
+    """Something that turns recorded messages into more to show (3D scene updates), without
+    making the recorder wait: ``mocaprig record --live --calib`` loads one through the
+    ``mocaprig.live_scene`` entry point (``process.democap.live_scene``)."""
+
+    def offer(self, topic: str, message: RecordedPayload, log_time_ns: int) -> None:
+        """A message as it is written (writer thread): keep what is needed, return at once."""
+
+    def take(self) -> list[tuple[str, RecordedPayload, int]]:
+        """What to publish now (publisher thread): ``(topic, message, log_time_ns)``."""
+
+    def close(self) -> None:
+        """Stop its work (the view is closing)."""
+
+
+#: Entry point group of the live scenes (``democap``: the markers and joints in 3D).
+LIVE_SCENE_GROUP: Final = "mocaprig.live_scene"
+
+
+def load_live_scene(name: str, calibration: Path, **options: Any) -> LiveScene:
+    """The live scene ``name`` of the ``mocaprig.live_scene`` entry points, made for the
+    calibration file ``calibration``.
+
+    Raises:
+        RecordingError: no such entry point, or it cannot be loaded.
+        CalibrationError: the calibration cannot be read or has no D415 (from the scene).
+    """
+    import importlib.metadata
+
+    eps = importlib.metadata.entry_points(group=LIVE_SCENE_GROUP)
+    if name not in eps.names:
+        msg = (
+            f"no live scene '{name}' is registered in the '{LIVE_SCENE_GROUP}' entry points; "
+            "reinstall mocaprig (pip install -e .)"
+        )
+        raise RecordingError(msg)
+    try:
+        factory = eps[name].load()
+    except Exception as err:  # an import error in the process package, whatever its type
+        msg = f"cannot load the live scene '{name}' ({eps[name].value}): {err}"
+        raise RecordingError(msg) from err
+    scene: LiveScene = factory(calibration, **options)
+    return scene
+
+
 class LiveView:
     """A Foxglove WebSocket server fed behind a :class:`~mocaprig.acquire.recorder.Recorder`;
     a context manager (see the module doc).
@@ -198,6 +252,9 @@ class LiveView:
         tick_s: Period of the publisher thread (s).
         backlog_messages: Messages the server queues per client before dropping the oldest.
         name: Server name shown by the Foxglove app.
+        scene: A :class:`LiveScene` offered every recorded message, whose scene updates are
+            published (``record --live --calib``: the markers and joints in 3D); closed with
+            the view. One that raises is dropped (logged), the view goes on without it.
 
     Raises:
         ValidationError: a rate, window or period is not > 0, or the port is out of range.
@@ -214,6 +271,7 @@ class LiveView:
         tick_s: float = 0.01,
         backlog_messages: int = 32,
         name: str = "mocaprig record",
+        scene: LiveScene | None = None,
     ) -> None:
         for what, value in (
             ("image_hz", image_hz),
@@ -256,6 +314,7 @@ class LiveView:
         self._latched: dict[str, tuple[bytes, int]] = {}  # camera_info, again at status_hz
         self._sync_seen: tuple[int, float] = (0, 0.0)
         self._recorder: Recorder | None = None
+        self._scene = scene
         self._context: foxglove.Context | None = None
         self._server: foxglove.websocket.WebSocketServer | None = None
         self._thread: threading.Thread | None = None
@@ -326,6 +385,10 @@ class LiveView:
             with contextlib.suppress(Exception):
                 self._server.stop()
             self._server = None
+        scene, self._scene = self._scene, None
+        if scene is not None:
+            with contextlib.suppress(Exception):
+                scene.close()
 
     def follow(self, recorder: Recorder) -> None:
         """Publish ``recorder``'s counters and faults on ``/live/status`` (its messages come
@@ -359,6 +422,15 @@ class LiveView:
         """
         if self._closed:
             return
+        scene = self._scene
+        if scene is not None:
+            try:
+                scene.offer(topic, message, log_time_ns)
+            except Exception:
+                self._scene = None
+                _log.exception("live view: the 3D scene failed on %s; going on without it", topic)
+                with contextlib.suppress(Exception):
+                    scene.close()
         route = self._routes.get(topic)
         if route is None:
             route = self._routes[topic] = _route(topic, message)
@@ -447,6 +519,13 @@ class LiveView:
                     self._published[live] += 1
         for live, items in packets.items():
             self._events(live, items)
+        scene = self._scene
+        if scene is not None:
+            for live, message, log_time in scene.take():
+                ch = self._channel(live, message.SCHEMA)
+                if ch.has_sinks():
+                    ch.log(message.encode(), log_time=log_time)
+                    self._published[live] += 1
 
     def _events(self, live: str, items: list[tuple[EventPacket, int]]) -> None:
         win = self._windows.get(live)

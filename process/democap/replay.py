@@ -96,6 +96,7 @@ __all__ = [
     "Grouping",
     "Instant",
     "ReplayResult",
+    "cloud_scene",
     "default_outputs",
     "group_instants",
     "marker_scene",
@@ -620,6 +621,12 @@ _JOINT_RGBA: Final = (0.2, 0.5, 1.0, 1.0)
 _CLOUD_RGBA: Final = (0.6, 0.6, 0.6, 0.6)
 
 
+def cloud_scene(frame_id: str, t_ns: int, cloud_m: F64, info: Mapping[str, str]) -> SceneUpdateMsg:
+    """The fused cloud the network saw at one instant, ``(M, 3)`` world m (10 mm grey
+    spheres)."""
+    return points_scene("cloud", frame_id, t_ns, cloud_m, 0.01, _CLOUD_RGBA, dict(info))
+
+
 def marker_scene(
     frame_id: str, t_ns: int, markers_m: F64, info: Mapping[str, str]
 ) -> SceneUpdateMsg:
@@ -722,9 +729,7 @@ def write_scene_mcap(
                 ]
                 if clouds is not None:
                     pts = np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3)
-                    msgs.append(
-                        (h["cloud"], points_scene("cloud", frame, t, pts, 0.01, _CLOUD_RGBA, info))
-                    )
+                    msgs.append((h["cloud"], cloud_scene(frame, t, pts, info)))
                 for handle, scene in msgs:
                     rec.put_wait(handle, scene, log_time_ns=t, sequence=i)
         replace_atomically(tmp, dst, overwrite=overwrite)

@@ -206,3 +206,37 @@ def test_record_command_serves_live_and_reports_its_drops(
     assert "live view: ws://127.0.0.1:" in out.err
     assert summary["drops_total"] == 0
     assert summary["live"]["dropped_total"] >= 0
+
+
+class _Scene:
+    """A stand-in live scene: counts what it is offered, fails on demand."""
+
+    def __init__(self, *, fail: bool) -> None:
+        self.fail = fail
+        self.offered: list[str] = []
+        self.closed = False
+
+    def offer(self, topic: str, message: object, log_time_ns: int) -> None:
+        self.offered.append(topic)
+        if self.fail:
+            raise RuntimeError("scene broke")
+
+    def take(self) -> list[tuple[str, object, int]]:
+        return []
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_scene_is_offered_every_message_and_a_failing_one_is_dropped(tmp_path: Path) -> None:
+    for fail in (False, True):
+        scene = _Scene(fail=fail)
+        with LiveView(port=0, scene=scene) as live:  # type: ignore[arg-type]
+            drops = _record(tmp_path, f"scene{fail}", 0.5, live)
+            assert (live._scene is None) == fail
+        assert drops == 0
+        assert scene.closed
+        if fail:
+            assert len(scene.offered) == 1
+        else:
+            assert {"/d415/c0/ir", "/d415/c0/depth", "/davis/x/events"} <= set(scene.offered)
