@@ -11,6 +11,7 @@ this code and raises :class:`mocaprig.errors.ProcessingError` naming what differ
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,6 +91,15 @@ def load_checkpoint(path: Path) -> Checkpoint:
     path = Path(path)
     if not path.is_file():
         msg = f"DeMoCap checkpoint {path} does not exist; train one with `mocaprig democap train`"
+        raise ProcessingError(msg)
+    if not zipfile.is_zipfile(path):
+        # torch.load would read anything else as a legacy pickle stream, whose length words it
+        # trusts: 64 random bytes made it allocate 1.8 GB (fuzz campaign, 2026-11-27).
+        msg = (
+            f"DeMoCap checkpoint {path} cannot be read: it is not a torch zip archive (what "
+            "torch.save writes); "
+            "the file is damaged or not a checkpoint"
+        )
         raise ProcessingError(msg)
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)

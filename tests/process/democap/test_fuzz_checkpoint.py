@@ -77,3 +77,24 @@ def test_a_damaged_entry_is_refused_by_name(
     saved[key] = value
     with pytest.raises(ProcessingError, match=r"bad\.pt"):
         load_checkpoint(_write(tmp_path, saved))
+
+
+def test_a_non_zip_file_is_refused_before_torch_reads_its_length_words(tmp_path: Path) -> None:
+    """64 random bytes (fuzz input #7389, seed 17) that torch.load's legacy pickle reader took
+    for a 1.8 GB string: refused before any allocation."""
+    import tracemalloc
+
+    bad = tmp_path / "garbage.pt"
+    bad.write_bytes(
+        bytes.fromhex(
+            "58a20f526e56acd15adba251986eeee8ef77ed2ce5879ac559b6212bc4991d2191f0cf53d0b6319d5b3785e3771745b26f5b0fccda5e616b2c2244f2839f41a2"
+        )
+    )
+    tracemalloc.start()
+    try:
+        with pytest.raises(ProcessingError, match="not a torch zip archive"):
+            load_checkpoint(bad)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20
