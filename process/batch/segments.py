@@ -64,6 +64,9 @@ I64 = npt.NDArray[np.int64]
 DEFAULT_SEGMENT_BATCHES: Final = 25
 #: Warm-up batches run before a segment's kept batches (thrown away).
 DEFAULT_OVERLAP: Final = 1
+#: Host time (ns) around a segment's frames whose event packets it indexes: a packet is
+#: recorded within milliseconds of its events; 2 s covers a stalled USB queue.
+_EVENT_LOG_MARGIN_NS: Final = 2_000_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -314,9 +317,13 @@ def run_segment(inputs: EventcapInputs, segment: Segment) -> SegmentResult:
         span = _FrameSpan(frames, segment.first, min(segment.end + 2, n))
         kept: list[tuple[I64, F64, F64]] = []
         compute_s = 0.0
-        for chunk in iter_take(
-            RecordingEventSource(dav), span, detector, camera, shape, options=inputs.options
-        ):
+        # Only the events recorded around the segment's frames are indexed (a long take's
+        # segment need not decode the whole take); a window past them indexes the rest.
+        lo_ns, hi_ns = frames.log_span_ns(segment.first, min(segment.end + 2, n))
+        events = RecordingEventSource(
+            dav, start_ns=lo_ns - _EVENT_LOG_MARGIN_NS, end_ns=hi_ns + _EVENT_LOG_MARGIN_NS
+        )
+        for chunk in iter_take(events, span, detector, camera, shape, options=inputs.options):
             compute_s += sum(chunk.result.stage_seconds.values())
             if chunk.batch >= segment.warmup:
                 kept.append((chunk.t_us, chunk.poses, chunk.keypoints_m))

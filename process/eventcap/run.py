@@ -256,6 +256,15 @@ class RecordingFrames(Sequence[ApsFrame]):
         out.sort(key=lambda e: e.exposure_start_us)
         return out
 
+    def log_span_ns(self, first: int, end: int) -> tuple[int, int]:
+        """The host log times (ns) over which frames ``first`` to ``end - 1`` were recorded
+        (their frame and frame-info messages)."""
+        part = self._entries[first:end]
+        if not part:
+            msg = f"no frame in [{first}, {end}) of {len(self._entries)}"
+            raise IndexError(msg)
+        return min(e.log_lo_ns for e in part), max(e.log_hi_ns for e in part)
+
     def __len__(self) -> int:
         return len(self._entries)
 
@@ -326,13 +335,19 @@ class RecordingEventSource:
 
     One pass at construction keeps each event packet's log time and first/last event time (the
     packet's events are dropped again); a window reads only the packets that overlap it.
-    ``events_read`` counts the events returned, ``peak_window_events`` the largest window.
+    ``start_ns``/``end_ns`` (host log time) limit that pass to the packets recorded then (a
+    segment of a long take need not decode the whole take's events); a window reaching past
+    the events so indexed makes the pass again over the whole file (logged), so a window
+    always gets every event it asks for. ``events_read`` counts the events returned,
+    ``peak_window_events`` the largest window.
 
     Raises:
-        RecordingError: the DAVIS recorded no events.
+        RecordingError: the DAVIS recorded no events (in the log-time span, when given).
     """
 
-    def __init__(self, davis: RecordedDavis) -> None:
+    def __init__(
+        self, davis: RecordedDavis, *, start_ns: int | None = None, end_ns: int | None = None
+    ) -> None:
         self._davis = davis
         topic = davis.device.topic("events")
         if not davis.has("events"):
@@ -341,31 +356,51 @@ class RecordingEventSource:
                 "needs them (record with the DVS on, or simulate with --davis-dvs)"
             )
             raise RecordingError(msg)
+        self._topic = topic
+        self._bounded = start_ns is not None or end_ns is not None
+        self._index(start_ns, end_ns)
+        self.events_total_span_us = (int(self._first.min()), int(self._last.max()))
+        self.events_read = 0
+        self.peak_window_events = 0
+
+    def _index(self, start_ns: int | None, end_ns: int | None) -> None:
         logs: list[int] = []
         first: list[int] = []
         last: list[int] = []
-        for log_ns, packet in davis.rec.decoded(topic):
+        for log_ns, packet in self._davis.rec.decoded(
+            self._topic, start_ns=start_ns, end_ns=end_ns
+        ):
             ev = packet.events
             if ev.size:
                 logs.append(int(log_ns))
                 first.append(int(ev["t"].min()))
                 last.append(int(ev["t"].max()))
         if not logs:
+            span = (
+                ""
+                if start_ns is None and end_ns is None
+                else f" between {start_ns} and {end_ns} ns"
+            )
             msg = (
-                f"{davis.rec.path}: DAVIS {davis.device.serial} has an event topic but no DVS "
-                "events; EventCap needs them (is the DVS on, the scene lit and moving?)"
+                f"{self._davis.rec.path}: DAVIS {self._davis.device.serial} has an event topic but "
+                f"no DVS events{span}; EventCap needs them (is the DVS on, the scene lit and "
+                "moving?)"
             )
             raise RecordingError(msg)
-        self._topic = topic
         self._log = np.asarray(logs, dtype=np.int64)
         self._first = np.asarray(first, dtype=np.int64)
         self._last = np.asarray(last, dtype=np.int64)
-        self.events_total_span_us = (int(self._first.min()), int(self._last.max()))
-        self.events_read = 0
-        self.peak_window_events = 0
 
     def __call__(self, t0_us: int, t1_us: int) -> npt.NDArray[np.void]:
         """Events with ``t0_us <= t <= t1_us``, sorted by time (canonical dtype)."""
+        if self._bounded and (t0_us < self._first.min() or t1_us > self._last.max()):
+            _log.info(
+                "%s: events %d-%d µs asked beyond the indexed %d-%d µs: indexing the whole take",
+                self._topic, t0_us, t1_us, int(self._first.min()), int(self._last.max()),
+            )  # fmt: skip
+            self._bounded = False
+            self._index(None, None)
+            self.events_total_span_us = (int(self._first.min()), int(self._last.max()))
         hit = np.flatnonzero((self._last >= t0_us) & (self._first <= t1_us))
         if not hit.size:
             return np.empty(0, EVENT_DTYPE)

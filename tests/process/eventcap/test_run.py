@@ -144,6 +144,28 @@ def test_event_source_windows_match_the_in_memory_events(
         assert src.peak_window_events == ref(33_000, 118_000).size
 
 
+def test_an_event_source_bounded_in_log_time_indexes_less_and_misses_no_event(
+    recording: tuple[Path, np.ndarray],
+) -> None:
+    path, evs = recording
+    ref = array_source(evs)
+    with Recording(path) as rec:
+        dav = select_davis(rec)
+        whole = RecordingEventSource(dav).events_total_span_us
+        logs = [m.log_time_ns for m in rec.messages(dav.device.topic("events"))]
+        src = RecordingEventSource(
+            dav, start_ns=logs[len(logs) // 3], end_ns=logs[2 * len(logs) // 3]
+        )
+        lo, hi = src.events_total_span_us
+        assert whole[0] < lo < hi < whole[1]  # only the middle packets were decoded
+        inside = (lo + 1, hi - 1)
+        np.testing.assert_array_equal(src(*inside)["t"], ref(*inside)["t"])
+        assert src.events_total_span_us == (lo, hi)
+        # A window past what was indexed indexes the whole take: nothing is missed.
+        np.testing.assert_array_equal(src(0, 5_000)["t"], ref(0, 5_000)["t"])
+        assert src.events_total_span_us == whole
+
+
 def test_frames_are_indexed_with_exposure_windows_and_decoded_lazily(
     recording: tuple[Path, np.ndarray],
 ) -> None:
