@@ -69,9 +69,12 @@ def decode_point_block(layout: C3DLayout, buf: bytes) -> tuple[FloatArray, Float
             vals = np.frombuffer(raw, dtype=end + "f4").astype(np.float64)
         rec = vals.reshape(f, fb // 4)[:, : 4 * n].reshape(f, n, 4)
         xyz = rec[..., :3].copy()
+        # The fourth word holds a 16-bit integer (camera mask, residual); anything else
+        # (NaN, inf, a huge float in a damaged file) is a gap rather than an undefined cast.
+        w4 = rec[..., 3]
         with np.errstate(invalid="ignore"):
-            fourth = np.where(np.isfinite(rec[..., 3]), rec[..., 3], -1.0)
-        word = fourth.astype(np.int64)
+            valid = np.isfinite(w4) & (w4 >= -32768.0) & (w4 <= 65535.0)
+        word = np.where(valid, w4, -1.0).astype(np.int64)
     else:
         end = ">" if layout.processor == "sgi" else "<"
         ints = np.frombuffer(raw, dtype=end + "i2").reshape(f, fb // 2)[:, : 4 * n]

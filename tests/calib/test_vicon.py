@@ -722,3 +722,23 @@ def test_real_c3d_numpy_decoder_matches_ezc3d(shared_data: Path) -> None:
     ez = read_c3d(path, isolate=False)
     np.testing.assert_array_equal(xyz[ez.valid] * 1e-3, ez.positions_m[ez.valid])
     np.testing.assert_array_equal(residual < 0, ~ez.valid)
+
+
+def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path: Path) -> None:
+    """A float file whose residual word is a huge float (a damaged file, a fuzz input): that
+    sample is a gap, the others are intact, and numpy is never asked for an undefined cast."""
+    import struct
+    import warnings
+
+    traj = _trajectories()
+    path = write_c3d(tmp_path / "d.c3d", traj)
+    buf = bytearray(path.read_bytes())
+    data_start = (struct.unpack_from("<H", buf, 16)[0] - 1) * 512  # header word 9 (1-based)
+    struct.pack_into("<f", buf, data_start + 12, 1e30)  # frame 0, point 0, fourth word
+    path.write_bytes(bytes(buf))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = read_c3d(path, isolate=False)
+    assert not back.valid[0, 0]
+    np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
+    np.testing.assert_array_equal(back.valid[0, 1:], traj.valid[0, 1:])
