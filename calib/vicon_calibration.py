@@ -270,6 +270,11 @@ def _choose_pool(
     return (*first[:4], [note], False)
 
 
+#: A pooled clock's reprojection cost must be below this fraction of the other convention's
+#: to tell the pulse phase when the stretch offsets do not.
+_POOL_COST_RATIO = 0.97
+
+
 def _with_timing(
     dp: DavisPulses, cams: Sequence[CalibCamera], timing: D415PulseTiming
 ) -> DavisPulses:
@@ -535,6 +540,21 @@ def calibrate_vicon(
         pool_timing, mappings, pool_notes, pool_ties, phase_notes, pool_told = _choose_pool(
             pools, opt
         )
+        if not pool_told and len(pools) == 2:
+            # The stretches do not tell: the reprojection of every camera's frames may.
+            costs = [sum(shift_cost(c.name, pl[1][c.name]) for c in cams) for pl in pools]
+            lo = int(np.argmin(costs))
+            if math.isfinite(costs[lo]) and costs[lo] < _POOL_COST_RATIO * costs[1 - lo]:
+                pool_timing, mappings, pool_notes, pool_ties = pools[lo][:4]
+                pool_told = True
+                phase_notes = [
+                    (
+                        "clock: pulse phase from the video by the reprojection cost of every "
+                        f"camera's frames: {pool_timing.describe()} ({costs[lo]:.4g} vs "
+                        f"{costs[1 - lo]:.4g}; the stretch offsets did not tell: "
+                        f"{pools[0][4] / 1e3:.0f} / {pools[1][4] / 1e3:.0f} µs median)"
+                    )
+                ]
         ties.clear()
         ties.update(pool_ties)
         video = mappings
