@@ -92,7 +92,12 @@ def load_checkpoint(path: Path) -> Checkpoint:
     if not path.is_file():
         msg = f"DeMoCap checkpoint {path} does not exist; train one with `mocaprig democap train`"
         raise ProcessingError(msg)
-    if not zipfile.is_zipfile(path):
+    try:
+        is_zip = zipfile.is_zipfile(path)
+    except zipfile.BadZipFile as exc:  # an end record naming other disks, a bad offset...
+        msg = f"DeMoCap checkpoint {path} cannot be read: its zip structure is damaged ({exc})"
+        raise ProcessingError(msg) from exc
+    if not is_zip:
         # torch.load would read anything else as a legacy pickle stream, whose length words it
         # trusts: 64 random bytes made it allocate 1.8 GB (fuzz campaign, 2026-11-27).
         msg = (

@@ -98,3 +98,18 @@ def test_a_non_zip_file_is_refused_before_torch_reads_its_length_words(tmp_path:
     finally:
         tracemalloc.stop()
     assert peak < 16 * 2**20
+
+
+def test_a_zip_end_record_naming_other_disks_is_a_clean_error(
+    tmp_path: Path, saved: dict[str, Any]
+) -> None:
+    """A bit flip in the zip64 end locator's disk number (fuzz input #8949, seed 17): zipfile
+    raises BadZipFile from its own check, which is reported as a damaged checkpoint."""
+    buf = bytearray(_write(tmp_path, saved).read_bytes())
+    locator = buf.rfind(b"PK\x06\x07")
+    assert locator > 0, "torch writes a zip64 end locator"
+    buf[locator + 4] = 1  # "number of the disk with the zip64 end record"
+    bad = tmp_path / "multidisk.pt"
+    bad.write_bytes(bytes(buf))
+    with pytest.raises(ProcessingError, match="zip structure is damaged"):
+        load_checkpoint(bad)
