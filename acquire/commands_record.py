@@ -296,6 +296,7 @@ def import_events(
     """``mocaprig import-events``: an RPG events text file into a recording
     (:func:`mocaprig.acquire.rpg_text.import_events_txt`), every message on the file's clock
     shifted by ``epoch_ns``."""
+    bar = ProgressBar(f"import {src.name}", unit="packets")
     imp = import_events_txt(
         src,
         out,
@@ -304,7 +305,9 @@ def import_events(
         serial=serial,
         packet_us=packet_us,
         epoch_ns=epoch_ns,
+        progress=bar,
     )
+    bar.finish()
     if as_json:
         emit_json({"output": str(out), "events": imp.events, "packets": imp.packets})
     else:

@@ -12,6 +12,7 @@ import dataclasses
 import decimal
 import io
 import itertools
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
@@ -284,8 +285,10 @@ def import_events_txt(
     serial: str = "imported",
     packet_us: int = 10_000,
     epoch_ns: int = 0,
+    progress: Callable[[int, int], None] | None = None,
 ) -> ImportedEvents:
-    """Store the events of an RPG events text file ``src`` in a new recording ``out``.
+    """Store the events of an RPG events text file ``src`` in a new recording ``out``
+    (``progress(packets_written, packets)`` as they are written).
 
     Events go to ``/davis/<serial>/events`` in packets of ``packet_us``, with their exact ns
     times (:attr:`EventPacket.t_ns`), so ``export --format txt`` gives the same lines back.
@@ -346,6 +349,8 @@ def import_events_txt(
             bins = (t_ns - t_ns[0]) // (packet_us * 1000)
             edges = [0, *(np.flatnonzero(np.diff(bins)) + 1).tolist(), events.size]
             for lo, hi in itertools.pairwise(edges):
+                if progress is not None:
+                    progress(n, len(edges) - 1)
                 now[0] = epoch_ns + int(t_ns[lo])
                 ok = rec.put(
                     hd,
@@ -357,4 +362,6 @@ def import_events_txt(
                     msg = f"importing {src}: a packet was dropped; this is a bug, report it"
                     raise RecordingError(msg)
                 n += 1
+            if progress is not None:
+                progress(n, len(edges) - 1)
     return ImportedEvents(events=int(events.size), packets=n, width=w, height=h)

@@ -128,3 +128,14 @@ def test_info_and_recover_draw_the_bytes_read_and_are_quiet_under_json(
     out, err = capsys.readouterr()
     assert "\r" not in err
     assert json.loads(out)["indexed"] is True
+
+
+def test_import_events_draws_the_packets_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    txt = tmp_path / "ev.txt"
+    txt.write_text("".join(f"{k * 1e-4:.6f} {k % 240} {k % 180} {k % 2}\n" for k in range(3000)))
+    out = tmp_path / "ev.mcap"
+    assert main(["--progress", "always", "import-events", str(txt), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"\rimport ev\.txt \[#+\] 30/30 packets", err), err
