@@ -498,6 +498,20 @@ def validate_c3d_bytes(buf: bytes, p: str) -> C3DLayout:
     if "UNITS" in point:
         units = _param_strings(point["UNITS"])
         units_raw = units[0] if units else ""
+    plates = params.get("FORCE_PLATFORM", {})
+    if "USED" in plates:
+        # The native reader builds one plate per FORCE_PLATFORM:USED from its TYPE, CORNERS...
+        # (a damaged count of 802 kept ezc3d busy for 15 s on a 2.5 kB file): the count must
+        # fit the TYPE list it indexes.
+        used_fp = number("FORCE_PLATFORM", "USED")
+        types = plates.get("TYPE")
+        n_types = len(_param_numbers(types, processor)) if types is not None else 0
+        if used_fp is None or not math.isfinite(used_fp) or not 0 <= used_fp <= n_types:
+            msg = (
+                f"FORCE_PLATFORM:USED is {used_fp} but FORCE_PLATFORM:TYPE describes {n_types} "
+                "plates"
+            )
+            raise w.fail(msg)
     model_outputs: set[str] = set()
     for key in _MODEL_OUTPUT_LISTS:
         if key in point:

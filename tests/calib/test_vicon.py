@@ -742,3 +742,21 @@ def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path
     assert not back.valid[0, 0]
     np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
     np.testing.assert_array_equal(back.valid[0, 1:], traj.valid[0, 1:])
+
+
+def test_a_force_plate_count_beyond_its_type_list_is_refused_before_the_native_reader(
+    tmp_path: Path,
+) -> None:
+    """FORCE_PLATFORM:USED = 802 in a 2.5 kB file (fuzz input #7262, seed 17): ezc3d spent 15 s
+    before its own error; the layout check refuses it at once, naming both parameters."""
+    import struct
+
+    from mocaprig.calib.c3d_layout import validate_c3d
+
+    path = write_c3d(tmp_path / "fp.c3d", _trajectories())
+    offset = validate_c3d(path).parameter_offsets["FORCE_PLATFORM:USED"]
+    buf = bytearray(path.read_bytes())
+    struct.pack_into("<h", buf, offset, 802)
+    path.write_bytes(bytes(buf))
+    with pytest.raises(ViconFileError, match=r"FORCE_PLATFORM:USED is 802.*TYPE describes 0"):
+        read_c3d(path)
