@@ -53,6 +53,14 @@ def isolate_timeout_s(n_bytes: int) -> float:
     return _ISOLATE_TIMEOUT_BASE_S + _ISOLATE_TIMEOUT_PER_MB_S * n_bytes / 1e6
 
 
+def _f4_to_f8(raw: bytes, end: str) -> FloatArray:
+    # A signalling NaN (a damaged file) raises the FPU's invalid flag when widened; it stays a
+    # NaN, which the readers treat as a gap, so the flag is no news worth a RuntimeWarning.
+    with np.errstate(invalid="ignore"):
+        out: FloatArray = np.frombuffer(raw, dtype=end + "f4").astype(np.float64)
+    return out
+
+
 def decode_point_block(layout: C3DLayout, buf: bytes) -> tuple[FloatArray, FloatArray]:
     """Decode the POINT block with numpy: (F, N, 3) coordinates and (F, N) residuals (source unit).
 
@@ -66,7 +74,7 @@ def decode_point_block(layout: C3DLayout, buf: bytes) -> tuple[FloatArray, Float
             vals = dec_to_ieee(np.frombuffer(raw, dtype=np.uint8)).astype(np.float64)
         else:
             end = ">" if layout.processor == "sgi" else "<"
-            vals = np.frombuffer(raw, dtype=end + "f4").astype(np.float64)
+            vals = _f4_to_f8(raw, end)
         rec = vals.reshape(f, fb // 4)[:, : 4 * n].reshape(f, n, 4)
         xyz = rec[..., :3].copy()
         # The fourth word holds a 16-bit integer (camera mask, residual); anything else
@@ -95,7 +103,7 @@ def decode_analog_block(layout: C3DLayout, alay: AnalogLayout, buf: bytes) -> Fl
         if layout.processor == "dec":
             vals = dec_to_ieee(np.frombuffer(raw, dtype=np.uint8)).astype(np.float64)
         else:
-            vals = np.frombuffer(raw, dtype=end + "f4").astype(np.float64)
+            vals = _f4_to_f8(raw, end)
         words = vals.reshape(f, fb // 4)
     else:
         kind = "u2" if alay.unsigned else "i2"

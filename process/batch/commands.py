@@ -28,8 +28,10 @@ Outputs: OUT/<session>/<method>/ (democap.mcap/.c3d/.csv; eventcap.mcap/.c3d/.bv
 done.json manifest. Finished methods are kept and skipped; a method is written into a hidden
 .part folder and renamed into place when all its files are done. A failed task is retried once,
 then reported by session and stage; the other sessions go on (exit code 1 if any failed).
-EventCap splits a take into segments of --segment-batches batches, each run from --overlap
-batches earlier, and stitches them: the same output on every engine (docs/cluster.md).
+DeMoCap runs a recording's instants in spans of --democap-span (each instant is independent)
+and joins them; EventCap splits a take into segments of --segment-batches batches, each run
+from --overlap batches earlier, and stitches them: the same output on every engine
+(docs/cluster.md).
 
 Engines (--cluster): auto (default: $DASK_SCHEDULER_ADDRESS when set, else a local process pool
 when --workers > 1, else in-process), in-process, local (a process pool of --workers), or a Dask
@@ -46,6 +48,7 @@ examples:
 def register_process(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``process`` to the ``mocaprig`` parser."""
     from mocaprig.process.batch.segments import DEFAULT_OVERLAP, DEFAULT_SEGMENT_BATCHES
+    from mocaprig.process.batch.tasks import DEFAULT_DEMOCAP_SPAN
 
     p = subparsers.add_parser(
         "process",
@@ -78,6 +81,13 @@ def register_process(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     p.add_argument("--workers", type=int, default=None, metavar="N", help="local pool size")
     p.add_argument(
         "--democap-every", type=int, default=1, metavar="N", help="DeMoCap: every n-th instant"
+    )
+    p.add_argument(
+        "--democap-span",
+        type=int,
+        default=DEFAULT_DEMOCAP_SPAN,
+        metavar="N",
+        help=f"DeMoCap instants per task (default {DEFAULT_DEMOCAP_SPAN})",
     )
     p.add_argument(
         "--height",
@@ -135,6 +145,7 @@ def process(args: argparse.Namespace) -> int:
     settings = ProcessSettings(
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         democap_every=args.democap_every,
+        democap_span=args.democap_span,
         height_m=args.height,
         eventcap_start_s=args.eventcap_start,
         eventcap_end_s=args.eventcap_end,

@@ -12,9 +12,11 @@ its attempt fails, and any left by a run that was killed are removed when the me
 again (one run per output folder at a time).
 
 Each task is tried at most twice: a task that raises, or whose worker died, is submitted once
-more; a second failure fails the (session, method) with its stage (``replay``, ``plan``,
-``segment i``, ``write``) and the error, and the run goes on with the others. EventCap's
-segments run as separate tasks; the runner stitches them (:mod:`.segments`) and writes the take.
+more; a second failure fails the (session, method) with its stage (``instants``, ``span i``,
+``plan``, ``segment i``, ``write``) and the error, and the run goes on with the others.
+DeMoCap's instants run in spans of ``democap_span`` as separate tasks, EventCap's batches in
+segments; the runner joins the spans (:func:`~mocaprig.process.democap.replay.join_spans`) or
+stitches the segments (:mod:`.segments`) and writes the method's files.
 """
 
 from __future__ import annotations
@@ -35,8 +37,6 @@ from mocaprig.errors import ProcessingError
 from mocaprig.json_values import to_jsonable
 from mocaprig.process.batch.engines import Engine
 from mocaprig.process.batch.segments import (
-    EventcapPlan,
-    SegmentResult,
     stitch_segments,
     write_eventcap,
 )
@@ -45,7 +45,9 @@ from mocaprig.process.batch.tasks import (
     OUTPUT_STEM,
     Method,
     ProcessSettings,
-    democap_task,
+    democap_calibration,
+    democap_plan_task,
+    democap_span_task,
     eventcap_inputs,
     eventcap_plan_task,
     eventcap_segment_task,
@@ -69,10 +71,11 @@ MANIFEST_NAME: Final = "done.json"
 #: Tries per task (the first and one retry).
 _TRIES: Final = 2
 
-#: The worker functions by stage kind: ``replay`` (DeMoCap), ``plan`` and ``segment``
-#: (EventCap). A plain mapping, so that a test can put in its own (``patch.dict``).
+#: The worker functions by stage kind: ``instants`` and ``span`` (DeMoCap), ``plan`` and
+#: ``segment`` (EventCap). A plain mapping, so that a test can put in its own (``patch.dict``).
 TASKS: MutableMapping[str, Callable[..., Any]] = {
-    "replay": democap_task,
+    "instants": democap_plan_task,
+    "span": democap_span_task,
     "plan": eventcap_plan_task,
     "segment": eventcap_segment_task,
 }
@@ -161,8 +164,9 @@ class _Job:
     final: Path
     t0: float = 0.0
     staging: Path | None = None
-    plan: EventcapPlan | None = None
-    segments: dict[int, SegmentResult] = field(default_factory=dict)
+    plan: Any = None  # the DeMoCap ReplayPlan or the EventCap EventcapPlan
+    parts: dict[int, Any] = field(default_factory=dict)  # ReplaySpan / SegmentResult by index
+    expected: int = 0  # parts planned
     retried: list[str] = field(default_factory=list)
     report: JobReport | None = None
 
@@ -194,7 +198,7 @@ def _describe(err: BaseException) -> str:
 def _method_settings(settings: ProcessSettings, method: Method) -> dict[str, Any]:
     """The settings that shape a method's outputs (kept in its manifest)."""
     if method == "democap":
-        return {"democap_every": settings.democap_every}
+        return {"democap_every": settings.democap_every}  # the spans do not change the files
     return {
         k: getattr(settings, k)
         for k in (
@@ -235,9 +239,9 @@ def _finished_before(job: _Job, settings: ProcessSettings) -> JobReport | None:
     return JobReport(job.session.name, job.method, "skipped", (*outputs, manifest), details=details)
 
 
-def _plan(job: _Job) -> EventcapPlan:
+def _plan(job: _Job) -> Any:
     if job.plan is None:
-        msg = f"{job.session.name} eventcap: a segment finished before the take was planned"
+        msg = f"{job.session.name} {job.method}: a part finished before the work was planned"
         raise ProcessingError(msg)
     return job.plan
 
@@ -351,15 +355,27 @@ def process_sessions(
         job.final.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale_parts(job)
         if job.method == "democap":
-            launch(job, "replay", job.session, str(job.new_staging()), settings)
+            launch(job, "instants", job.session, settings)
         else:
             launch(job, "plan", job.session, settings)
         say(job, "started")
 
+    def write_replay_files(job: _Job) -> None:
+        from mocaprig.process.democap.replay import join_spans, output_paths, write_replay
+
+        plan = _plan(job)
+        staging = job.new_staging()
+        out = output_paths(staging / f"{OUTPUT_STEM['democap']}.mcap")
+        result = join_spans(plan, list(job.parts.values()), outputs=out)
+        result = write_replay(result, democap_calibration(job.session))
+        details = {k: v for k, v in result.summary().items() if k != "outputs"}
+        details["spans"] = len(job.parts)
+        publish(job, details)
+
     def write_take(job: _Job) -> None:
         plan = _plan(job)
         # The batch count is the last segment's end, plan.batches (plan_segments).
-        stitched = stitch_segments(list(job.segments.values()))
+        stitched = stitch_segments(list(job.parts.values()))
         staging = job.new_staging()
         stem = OUTPUT_STEM["eventcap"]
         write_eventcap(
@@ -379,37 +395,38 @@ def process_sessions(
                 "t_first_davis_us": int(stitched.t_us[0]),
                 "davis": stitched.davis,
                 "detections": stitched.detection_source,
-                "segment_seconds": [
-                    round(job.segments[i].seconds, 3) for i in sorted(job.segments)
-                ],
-                "segment_compute_s": [
-                    round(job.segments[i].compute_s, 3) for i in sorted(job.segments)
-                ],
+                "segment_seconds": [round(job.parts[i].seconds, 3) for i in sorted(job.parts)],
+                "segment_compute_s": [round(job.parts[i].compute_s, 3) for i in sorted(job.parts)],
             },
         )
 
     def succeeded(t: _Try, value: Any) -> None:
         job = t.job
-        if t.stage == "replay":
-            # The replay names its files in the staging folder; they now live in the final one.
-            details = {k: v for k, v in dict(value).items() if k != "outputs"}
-            publish(job, details)
-        elif t.stage == "plan":
+        kind = t.stage.split()[0]
+        if kind == "instants":
             job.plan = value
-            n = len(value.segments)
+            spans = value.spans(settings.democap_span)
+            n = len(value.instants)
+            say(job, f"{n} instant{'s' if n != 1 else ''} in {len(spans)} span(s)")
+            for i, (a, b) in enumerate(spans):
+                launch(job, f"span {i}", job.session, value.span(a, b))
+            job.expected = len(spans)
+        elif kind == "plan":
+            job.plan = value
+            job.expected = len(value.segments)
+            n = job.expected
             say(job, f"{value.batches} batches in {n} segment{'s' if n != 1 else ''}")
             for seg in value.segments:
-                stage = f"segment {seg.index}"
-                launch(job, stage, job.session, settings, seg)
+                launch(job, f"segment {seg.index}", job.session, settings, seg)
         else:
-            res: SegmentResult = value
-            job.segments[res.segment.index] = res
-            plan = _plan(job)
-            say(job, f"segment {len(job.segments)}/{len(plan.segments)} done")
-            if len(job.segments) == len(plan.segments):
+            job.parts[int(t.stage.split()[1])] = value
+            _plan(job)
+            say(job, f"{kind} {len(job.parts)}/{job.expected} done")
+            if len(job.parts) == job.expected:
+                write = write_replay_files if job.method == "democap" else write_take
                 for attempt in range(1, _TRIES + 1):
                     try:
-                        write_take(job)
+                        write(job)
                         return
                     except Exception as err:
                         if attempt == _TRIES:
@@ -431,10 +448,7 @@ def process_sessions(
                 if t.attempt < _TRIES:
                     t.job.retried.append(f"{t.stage}: {_describe(err)}")
                     say(t.job, f"{t.stage} failed ({_describe(err)}); retrying")
-                    args = t.args
-                    if t.stage == "replay":
-                        args = (t.args[0], str(t.job.new_staging()), *t.args[2:])
-                    launch(t.job, t.stage, *args, attempt=t.attempt + 1)
+                    launch(t.job, t.stage, *t.args, attempt=t.attempt + 1)
                 else:
                     fail(t.job, t.stage, err)
                 continue

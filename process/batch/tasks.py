@@ -2,9 +2,12 @@
 engine can ship them to a worker. Each reads its inputs where they are (a path on the shared
 file system, or an fsspec URL fetched by the worker, :func:`.sessions.local_path`).
 
-* :func:`democap_task` — the DeMoCap replay of one recording
-  (:func:`~mocaprig.process.democap.replay.run_replay`), written into a staging folder under
-  the output folder (which workers see at the same path).
+* :func:`democap_plan_task` — index one recording's rig instants
+  (:func:`~mocaprig.process.democap.replay.plan_replay`).
+* :func:`democap_span_task` — DeMoCap on one span of those instants
+  (:func:`~mocaprig.process.democap.replay.replay_span`); its results come back (a few kB per
+  instant: markers, joints, the fused cloud) and the runner joins the spans and writes the
+  replay's files (:func:`~mocaprig.process.democap.replay.write_replay`).
 * :func:`eventcap_plan_task` — index one take: its batches and segments (:mod:`.segments`).
 * :func:`eventcap_segment_task` — one segment of a take; its 1 kHz output comes back (a few
   tens of kB per batch) and the runner stitches and writes the take.
@@ -15,7 +18,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import TYPE_CHECKING, Final, Literal
 
 from mocaprig.errors import ValidationError
 from mocaprig.process.batch.segments import (
@@ -30,12 +33,18 @@ from mocaprig.process.batch.segments import (
 )
 from mocaprig.process.batch.sessions import SessionInputs, local_path
 
+if TYPE_CHECKING:
+    from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan
+
 __all__ = [
+    "DEFAULT_DEMOCAP_SPAN",
     "METHODS",
     "OUTPUT_STEM",
     "Method",
     "ProcessSettings",
-    "democap_task",
+    "democap_calibration",
+    "democap_plan_task",
+    "democap_span_task",
     "eventcap_inputs",
     "eventcap_plan_task",
     "eventcap_segment_task",
@@ -48,6 +57,9 @@ Method = Literal["democap", "eventcap"]
 METHODS: Final[tuple[Method, ...]] = ("democap", "eventcap")
 #: The outputs' stem in each method's folder (``democap.mcap`` + ``.c3d`` + ``.csv``, ...).
 OUTPUT_STEM: Final = {"democap": "democap", "eventcap": "eventcap"}
+#: DeMoCap instants per task (10 s of a 30 fps rig: ~20–40 s of work here, against ~1 s to
+#: load the network and open the recording).
+DEFAULT_DEMOCAP_SPAN: Final = 300
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,6 +69,7 @@ class ProcessSettings:
     Attributes:
         methods: The pipelines to run on every session.
         democap_every: DeMoCap processes every n-th rig instant.
+        democap_span: DeMoCap instants per task (the unit of parallel work within a session).
         height_m: EventCap's template for sessions without ``eventcap_shape.json`` (m).
         eventcap_start_s, eventcap_end_s: EventCap uses the APS frames exposed in this span of
             the DAVIS timeline (s since its timestamp reset); None: from the start / to the end.
@@ -68,6 +81,7 @@ class ProcessSettings:
 
     methods: tuple[Method, ...] = METHODS
     democap_every: int = 1
+    democap_span: int = DEFAULT_DEMOCAP_SPAN
     height_m: float | None = None
     eventcap_start_s: float | None = None
     eventcap_end_s: float | None = None
@@ -85,6 +99,7 @@ class ProcessSettings:
             raise ValidationError(msg)
         for name, value, low in (
             ("--democap-every", self.democap_every, 1),
+            ("--democap-span", self.democap_span, 1),
             ("--segment-batches", self.segment_batches, 1),
             ("--overlap", self.overlap, 0),
             ("--eventcap-batches", self.eventcap_batches, 1),
@@ -98,28 +113,43 @@ class ProcessSettings:
             raise ValidationError(msg)
 
 
-def democap_task(session: SessionInputs, staging: str, settings: ProcessSettings) -> dict[str, Any]:
-    """Replay ``session`` through DeMoCap into ``staging/democap.{mcap,c3d,csv}``; returns the
-    replay's JSON summary.
+def democap_calibration(session: SessionInputs) -> Path:
+    """The session's calibration as a local path on the calling worker.
 
     Raises:
-        ValidationError: the session has no calibration. The replay's errors otherwise.
+        ValidationError: the session has no calibration.
     """
-    from mocaprig.process.democap.replay import run_replay
-
     if session.calibration is None:
         msg = (
             f"{session.name}: no calibration for DeMoCap; give --calib or put calib.toml "
             f"(mocaprig calibrate vicon) in {session.folder}"
         )
         raise ValidationError(msg)
-    result = run_replay(
-        local_path(session.recording),
-        local_path(session.calibration),
-        out=Path(staging) / f"{OUTPUT_STEM['democap']}.mcap",
-        every=settings.democap_every,
-    )
-    return result.summary()
+    return local_path(session.calibration)
+
+
+def democap_plan_task(session: SessionInputs, settings: ProcessSettings) -> ReplayPlan:
+    """Index the rig instants of ``session`` (:func:`~mocaprig.process.democap.replay.plan_replay`).
+
+    Raises:
+        ValidationError: the session has no calibration. The plan's errors otherwise.
+    """
+    from mocaprig.process.democap.replay import plan_replay
+
+    calibration = democap_calibration(session)
+    return plan_replay(local_path(session.recording), calibration, every=settings.democap_every)
+
+
+def democap_span_task(session: SessionInputs, plan: ReplayPlan) -> ReplaySpan:
+    """DeMoCap on every instant of ``plan`` (a span of the session's plan,
+    :meth:`~mocaprig.process.democap.replay.ReplayPlan.span`) with the committed network."""
+    from dataclasses import replace
+
+    from mocaprig.process.democap.replay import replay_span
+
+    # The recording as this worker sees it (an fsspec URL is fetched where it runs).
+    here = replace(plan, session=Path(local_path(session.recording)))
+    return replay_span(here, democap_calibration(session))
 
 
 def eventcap_inputs(session: SessionInputs, settings: ProcessSettings) -> EventcapInputs:

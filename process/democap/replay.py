@@ -19,8 +19,14 @@
    capture-box crop of the training data (:data:`DEFAULT_CROP_BOX_M`), the 10 mm merge of the
    views, then :class:`~mocaprig.process.democap.infer.DemocapPredictor` (instants whose cloud
    has fewer than 2 points are skipped and counted);
+5. keeps each instant's labelled markers, joints and fused cloud;
 6. writes the results (:func:`write_scene_mcap`, :func:`write_replay_c3d`,
    :func:`write_replay_csv`).
+
+The steps are functions of their own, so that a long recording can run in parallel (``mocaprig
+process``, docs/cluster.md): :func:`plan_replay` (1–3), :func:`replay_span` (4–5, on any span
+of the instants: each instant stands alone), :func:`join_spans` and :func:`write_replay` (6);
+:func:`run_replay` chains them over one span of every instant.
 
 Outputs (docs/democap.md "Replay"):
 
@@ -50,6 +56,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, Final
 
@@ -60,6 +67,7 @@ from mocaprig.acquire.depth_camera import FrameSet
 from mocaprig.acquire.device_id import DeviceId
 from mocaprig.acquire.device_streams import (
     D415FrameIndex,
+    D415Intrinsics,
     RecordedD415,
     d415_devices,
     read_frame_sets,
@@ -95,14 +103,21 @@ __all__ = [
     "METADATA_NAME",
     "Grouping",
     "Instant",
+    "ReplayPlan",
     "ReplayResult",
+    "ReplaySpan",
     "cloud_scene",
     "default_outputs",
     "group_instants",
+    "join_spans",
     "marker_scene",
+    "output_paths",
+    "plan_replay",
+    "replay_span",
     "run_replay",
     "score_replay",
     "skeleton_scene",
+    "write_replay",
     "write_replay_c3d",
     "write_replay_csv",
     "write_scene_mcap",
@@ -152,7 +167,8 @@ class ReplayResult:
         checkpoint: ``"<config> (<epochs> epochs)"`` of the network used.
         rotations: size of the rotation ensemble used (1: single shot).
         timings_s: Wall seconds per stage (``measure_s``, ``network_s``, ``write_s``,
-            ``total_s``).
+            ``total_s``; summed over spans when the replay ran in spans).
+        clouds_m: The N fused input clouds ``(Mi, 3)`` (world, m); empty when not kept.
     """
 
     session: Path
@@ -173,6 +189,7 @@ class ReplayResult:
     checkpoint: str = ""
     rotations: int = 1
     timings_s: Mapping[str, float] = field(default_factory=dict)
+    clouds_m: tuple[F64, ...] = field(default=(), repr=False)
 
     @property
     def instants(self) -> int:
@@ -301,6 +318,387 @@ def _check_calibrated(
             raise ProcessingError(msg) from err
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class ReplayPlan:
+    """A recording's rig instants, ready to be processed whole or in spans (:func:`plan_replay`).
+
+    Small and picklable (frame indexes and times, no image): what a worker needs beside the
+    recording and the calibration, which it reads where they are.
+
+    Attributes:
+        session: The recording.
+        cameras: Its D415s (``d415/<serial>``), sorted.
+        index: Camera -> its frame index (no image decoded).
+        intrinsics: Camera -> its recorded ``camera_info`` intrinsics.
+        instants: The selected instants (every ``every``-th), in time order.
+        instants_total: Instants found in the recording (before ``every``).
+        offset: Index of ``instants[0]`` among the whole plan's (a span's plan,
+            :meth:`span`; 0 for a whole plan).
+        every: Every n-th instant is selected.
+        period_ns: Median frame period on the reference clock (ns).
+        reference_clock: The calibration's reference clock.
+        world_frame: The calibration's world frame.
+    """
+
+    session: Path
+    cameras: tuple[str, ...]
+    index: Mapping[str, D415FrameIndex] = field(repr=False)
+    intrinsics: Mapping[str, D415Intrinsics] = field(repr=False)
+    instants: tuple[Instant, ...] = field(repr=False)
+    instants_total: int = 0
+    every: int = 1
+    period_ns: int = 0
+    reference_clock: str = "vicon"
+    world_frame: str = "vicon"
+    offset: int = 0
+
+    @property
+    def frames_per_camera(self) -> dict[str, int]:
+        """Frames of each camera in the recording."""
+        return {c: len(self.index[c]) for c in self.cameras}
+
+    def spans(self, size: int) -> list[tuple[int, int]]:
+        """The selected instants cut into ``[start, stop)`` spans of at most ``size``.
+
+        Raises:
+            ValidationError: ``size`` < 1.
+        """
+        if isinstance(size, bool) or int(size) != size or size < 1:
+            msg = f"a span needs at least 1 instant, got {size!r}"
+            raise ValidationError(msg)
+        n = len(self.instants)
+        return [(a, min(a + int(size), n)) for a in range(0, n, int(size))] or [(0, 0)]
+
+    def span(self, start: int, stop: int) -> ReplayPlan:
+        """The plan of the instants ``[start, stop)`` alone: their frames' entries of the
+        index and nothing else, so that a worker is sent little (``offset`` = ``start``).
+
+        Raises:
+            ValidationError: a span outside the plan.
+        """
+        n = len(self.instants)
+        if not 0 <= start <= stop <= n:
+            msg = f"span [{start}, {stop}) is not within the plan's {n} instants"
+            raise ValidationError(msg)
+        instants = self.instants[start:stop]
+        index = {}
+        for c in self.cameras:
+            ix = self.index[c]
+            wanted = np.fromiter((i.frames[c] for i in instants if c in i.frames), dtype=np.int64)
+            keep = np.isin(ix.t_dev_ns, wanted)
+            index[c] = replace(
+                ix,
+                log_time_ns=ix.log_time_ns[keep],
+                sequence=ix.sequence[keep],
+                frame_counter=ix.frame_counter[keep],
+                t_dev_ns=ix.t_dev_ns[keep],
+            )
+        return replace(self, index=index, instants=instants, offset=self.offset + start)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ReplaySpan:
+    """DeMoCap's results on the instants ``[start, stop)`` of a plan (:func:`replay_span`).
+
+    Attributes:
+        start, stop: The span, indices into :attr:`ReplayPlan.instants`.
+        t_ref_ns: ``(N,)`` reference time of each instant with a result (ns).
+        cameras_per_instant: ``(N,)`` cameras whose frame fed it.
+        markers_m: ``(N, 53, 3)`` labelled markers (world, m).
+        joints_m: ``(N, 19, 3)`` joints (world, m).
+        clouds_m: N fused clouds ``(Mi, 3)`` (world, m).
+        skipped: Instants of the span without a result (fused cloud under 2 points).
+        measure_s, network_s: Seconds spent measuring + merging, and in the network.
+        checkpoint: ``"<config> (<epochs> epochs)"`` of the network.
+        rotations: Size of its rotation ensemble.
+    """
+
+    start: int
+    stop: int
+    t_ref_ns: I64 = field(repr=False)
+    cameras_per_instant: I64 = field(repr=False)
+    markers_m: F64 = field(repr=False)
+    joints_m: F64 = field(repr=False)
+    clouds_m: tuple[F64, ...] = field(repr=False)
+    skipped: int = 0
+    measure_s: float = 0.0
+    network_s: float = 0.0
+    checkpoint: str = ""
+    rotations: int = 1
+
+
+def _read_calibration(calibration: Calibration | str | Path) -> tuple[Calibration, str]:
+    if isinstance(calibration, Calibration):
+        return calibration, "given"
+    return read_calibration(calibration), str(calibration)
+
+
+def plan_replay(
+    session: str | Path,
+    calibration: Calibration | str | Path,
+    *,
+    every: int = 1,
+    tolerance: float = INSTANT_TOLERANCE,
+) -> ReplayPlan:
+    """Steps 1–3 of the replay (module doc): index the D415 frames, put them on the reference
+    clock, group them into instants and select every ``every``-th.
+
+    Raises:
+        ValidationError: bad ``every`` or ``tolerance``.
+        ProcessingError: no D415 stream, or a camera without calibration entry or clock.
+        CalibrationError: the calibration file is unreadable, or a D415 stream has no
+            ``camera_info``.
+        RecordingError: the recording is unreadable.
+    """
+    if isinstance(every, bool) or int(every) != every or every < 1:
+        msg = f"every must be an integer >= 1, got {every!r}"
+        raise ValidationError(msg)
+    session_path = Path(session)
+    cal, cal_source = _read_calibration(calibration)
+    with Recording(session_path) as rec:
+        d415 = {d.label: RecordedD415(rec, d) for d in d415_devices(rec)}
+        if not d415:
+            msg = f"{session_path}: no D415 stream in the recording; nothing to replay"
+            raise ProcessingError(msg)
+        cameras = tuple(sorted(d415))
+        try:
+            index = {c: d415[c].frame_index() for c in cameras}
+            intrinsics = {c: d415[c].intrinsics() for c in cameras}
+        except RecordingError as err:
+            raise CalibrationError(str(err)) from err
+    _check_calibrated(cal, cameras, session_path, cal_source)
+    t_dev = {c: np.sort(index[c].t_dev_ns) for c in cameras}
+    t_ref = {c: cal.clock(c).to_reference_ns(t_dev[c]) for c in cameras}
+    grouping = group_instants(t_dev, t_ref, tolerance=tolerance)
+    selected = tuple(grouping.instants[:: int(every)])
+    _log.info(
+        "%s: %d instants from %d cameras (period %.3f ms), %d selected (every %d)",
+        session_path,
+        len(grouping.instants),
+        len(cameras),
+        grouping.period_ns / 1e6,
+        len(selected),
+        every,
+    )
+    return ReplayPlan(
+        session=session_path,
+        cameras=cameras,
+        index=index,
+        intrinsics=intrinsics,
+        instants=selected,
+        instants_total=len(grouping.instants),
+        every=int(every),
+        period_ns=grouping.period_ns,
+        reference_clock=cal.reference_clock,
+        world_frame=cal.world_frame,
+    )
+
+
+def replay_span(
+    plan: ReplayPlan,
+    calibration: Calibration | str | Path,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+    predictor: DemocapPredictor | None = None,
+    crop_box_m: Box | None = DEFAULT_CROP_BOX_M,
+    merge_radius_m: float = 0.010,
+    batch: int = 16,
+    progress: Callable[[int, int], None] | None = None,
+) -> ReplaySpan:
+    """Steps 4–5 of the replay (module doc) on the instants ``plan.instants[start:stop]``
+    (indices of the returned span count from the whole plan's first instant, ``plan.offset``).
+
+    Each instant is processed on its own (no state is carried from one to the next), so spans
+    of one plan can run anywhere, in any order, and :func:`join_spans` gives what one span
+    over all instants gives.
+
+    Args:
+        plan: From :func:`plan_replay`.
+        calibration: The plan's calibration (or its path).
+        start, stop: The span (``stop`` None: to the end).
+        predictor, crop_box_m, merge_radius_m, batch, progress: As :func:`run_replay`.
+
+    Raises:
+        ValidationError: a bad span, ``batch`` or ``crop_box_m``.
+        ProcessingError: the checkpoint estimates no markers (the ``"pose"`` baseline).
+        RecordingError: the recording is unreadable.
+    """
+    n = len(plan.instants)
+    stop = n if stop is None else stop
+    if not 0 <= start <= stop <= n:
+        msg = f"span [{start}, {stop}) is not within the plan's {n} instants"
+        raise ValidationError(msg)
+    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
+        msg = f"batch must be an integer >= 1, got {batch!r}"
+        raise ValidationError(msg)
+    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
+        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
+        raise ValidationError(msg)
+    if predictor is not None and not predictor.predicts_markers:
+        msg = (
+            f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "
+            "estimates no markers; the replay writes markers, so use a markers-to-pose one"
+        )
+        raise ProcessingError(msg)
+    cal, _ = _read_calibration(calibration)
+    pred = predictor if predictor is not None else DemocapPredictor()
+    selected = plan.instants[start:stop]
+    # The camera's own intrinsics (camera_info) and the calibrated pose.
+    live_cams = [
+        LiveCamera.from_calibration(
+            cal,
+            c,
+            K=plan.intrinsics[c].k,
+            distortion=plan.intrinsics[c].distortion,
+            depth_scale_m=plan.index[c].depth_scale_m,
+        )
+        for c in plan.cameras
+    ]
+    clouds: list[F64] = []
+    preds: list[Prediction] = []
+    kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
+    skipped = 0
+    t_measure = t_network = 0.0
+    with (
+        Recording(plan.session) as rec,
+        LivePipeline(
+            pred,
+            live_cams,
+            crop_box_m=crop_box_m,
+            merge_radius_m=merge_radius_m,
+            queue_size=max(2, int(batch)),
+        ) as pipeline,
+    ):
+        frames = _instant_frames(rec, plan.index, selected)
+        for inst, res in zip(selected, pipeline.stream(frames), strict=True):
+            t_measure += (res.timings_ms["measure_ms"] + res.timings_ms["merge_ms"]) / 1e3
+            t_network += res.timings_ms["predict_ms"] / 1e3
+            if res.prediction is None:
+                skipped += 1
+            else:
+                clouds.append(res.cloud_m)
+                preds.append(res.prediction)
+                kept.append((inst.t_ref_ns, res.cameras_used))
+            if progress is not None:
+                progress(len(kept) + skipped, len(selected))
+    ck = pred.checkpoint
+    return ReplaySpan(
+        start=plan.offset + start,
+        stop=plan.offset + stop,
+        t_ref_ns=np.array([t for t, _ in kept], dtype=np.int64),
+        cameras_per_instant=np.array([c for _, c in kept], dtype=np.int64),
+        markers_m=np.stack([p.markers_m for p in preds]) if preds else _empty(len(MARKER_NAMES)),
+        joints_m=np.stack([p.joints_m for p in preds]) if preds else _empty(len(DEMOCAP_JOINTS)),
+        clouds_m=tuple(clouds),
+        skipped=skipped,
+        measure_s=t_measure,
+        network_s=t_network,
+        checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
+        rotations=pred.rotations,
+    )
+
+
+def _empty(points: int) -> F64:
+    return np.zeros((0, points, 3), dtype=np.float64)
+
+
+def join_spans(
+    plan: ReplayPlan, spans: Sequence[ReplaySpan], *, outputs: Mapping[str, Path]
+) -> ReplayResult:
+    """The :class:`ReplayResult` of spans that together cover every instant of the whole
+    ``plan`` once (in any order; their clouds are in :attr:`ReplayResult.clouds_m`).
+
+    Raises:
+        ValidationError: the spans do not tile the plan's instants, or came from different
+            networks.
+        ProcessingError: no instant has a usable cloud.
+    """
+    if plan.offset:
+        msg = f"join_spans needs the whole plan, got the span's plan from instant {plan.offset}"
+        raise ValidationError(msg)
+    ordered = sorted(spans, key=lambda s: s.start)
+    edges = [(s.start, s.stop) for s in ordered]
+    tiles = bool(ordered) and ordered[0].start == 0 and ordered[-1].stop == len(plan.instants)
+    if not tiles or any(a[1] != b[0] for a, b in pairwise(edges)):
+        msg = f"spans {edges} do not cover the plan's {len(plan.instants)} instants once"
+        raise ValidationError(msg)
+    nets = {(s.checkpoint, s.rotations) for s in ordered}
+    if len(nets) != 1:
+        msg = f"the spans were processed by different networks: {sorted(nets)}"
+        raise ValidationError(msg)
+    skipped = sum(s.skipped for s in ordered)
+    if skipped:
+        _log.warning("%s: %d instants skipped (fewer than 2 points)", plan.session, skipped)
+    clouds = tuple(c for s in ordered for c in s.clouds_m)
+    if not clouds:
+        msg = (
+            f"{plan.session}: none of the {len(plan.instants)} instants has 2 or more marker "
+            "points after the merge; are the markers lit and inside the capture box?"
+        )
+        raise ProcessingError(msg)
+    checkpoint, rotations = nets.pop()
+    return ReplayResult(
+        session=plan.session,
+        outputs=dict(outputs),
+        cameras=plan.cameras,
+        frames_per_camera=plan.frames_per_camera,
+        t_ref_ns=np.concatenate([s.t_ref_ns for s in ordered]),
+        cameras_per_instant=np.concatenate([s.cameras_per_instant for s in ordered]),
+        points_per_instant=np.array([c.shape[0] for c in clouds], dtype=np.int64),
+        markers_m=np.concatenate([s.markers_m for s in ordered]),
+        joints_m=np.concatenate([s.joints_m for s in ordered]),
+        instants_total=plan.instants_total,
+        skipped_instants=skipped,
+        every=plan.every,
+        period_ns=plan.period_ns,
+        reference_clock=plan.reference_clock,
+        world_frame=plan.world_frame,
+        checkpoint=checkpoint,
+        rotations=rotations,
+        clouds_m=clouds,
+        timings_s={
+            "measure_s": sum(s.measure_s for s in ordered),
+            "network_s": sum(s.network_s for s in ordered),
+        },
+    )
+
+
+def output_paths(
+    out: str | Path, *, c3d: str | Path | None = None, csv: str | Path | None = None
+) -> dict[str, Path]:
+    """``{"mcap", "c3d", "csv"}`` paths of a replay's outputs (C3D and CSV default beside
+    ``out``, :func:`default_outputs`)."""
+    out_path = Path(out)
+    c3d_default, csv_default = default_outputs(out_path)
+    return {
+        "mcap": out_path,
+        "c3d": c3d_default if c3d is None else Path(c3d),
+        "csv": csv_default if csv is None else Path(csv),
+    }
+
+
+def write_replay(
+    result: ReplayResult, calibration: Calibration | str | Path, *, overwrite: bool = False
+) -> ReplayResult:
+    """Step 6: write ``result`` to its outputs (MCAP with its clouds and the calibration
+    attached, C3D, CSV); returns it with ``write_s`` in its timings.
+
+    Raises:
+        ProcessingError, ValidationError, ViconFileError: as the three writers.
+    """
+    cal, _ = _read_calibration(calibration)
+    paths = result.outputs
+    _check_outputs(paths, overwrite)
+    t0 = time.monotonic()
+    write_scene_mcap(
+        result, paths["mcap"], clouds=result.clouds_m, calibration=cal, overwrite=overwrite
+    )
+    write_replay_c3d(result, paths["c3d"], overwrite=overwrite)
+    write_replay_csv(result, paths["csv"], overwrite=overwrite)
+    return replace(result, timings_s={**result.timings_s, "write_s": time.monotonic() - t0})
+
+
 def run_replay(
     session: str | Path,
     calibration: Calibration | str | Path,
@@ -317,7 +715,9 @@ def run_replay(
     batch: int = 16,
     progress: Callable[[int, int], None] | None = None,
 ) -> ReplayResult:
-    """Replay a recording through DeMoCap (module doc) and write MCAP, C3D and CSV results.
+    """Replay a recording through DeMoCap (module doc) and write MCAP, C3D and CSV results:
+    :func:`plan_replay`, one :func:`replay_span` over every instant, :func:`join_spans`,
+    :func:`write_replay`.
 
     Args:
         session: The recording (``.mcap``) with D415 streams.
@@ -349,11 +749,7 @@ def run_replay(
             recording has no ``camera_info`` (intrinsics).
         RecordingError: the recording is unreadable.
     """
-
     t_start = time.monotonic()
-    if isinstance(every, bool) or int(every) != every or every < 1:
-        msg = f"every must be an integer >= 1, got {every!r}"
-        raise ValidationError(msg)
     if isinstance(batch, bool) or int(batch) != batch or batch < 1:
         msg = f"batch must be an integer >= 1, got {batch!r}"
         raise ValidationError(msg)
@@ -363,135 +759,31 @@ def run_replay(
             "estimates no markers; the replay writes markers, so use a markers-to-pose one"
         )
         raise ProcessingError(msg)
-    session_path = Path(session)
-    out_path = Path(out)
-    c3d_default, csv_default = default_outputs(out_path)
-    paths = {
-        "mcap": out_path,
-        "c3d": c3d_default if c3d is None else Path(c3d),
-        "csv": csv_default if csv is None else Path(csv),
-    }
+    paths = output_paths(out, c3d=c3d, csv=csv)
     _check_outputs(paths, overwrite)
-    if isinstance(calibration, Calibration):
-        cal, cal_source = calibration, "given"
-    else:
-        cal, cal_source = read_calibration(calibration), str(calibration)
-    box = None
-    if crop_box_m is not None:
-        box = np.asarray(crop_box_m, dtype=np.float64)
-        if box.shape != (3, 2):
-            msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
-            raise ValidationError(msg)
-
-    pred = predictor if predictor is not None else DemocapPredictor()
-    with Recording(session_path) as rec:
-        d415 = {d.label: RecordedD415(rec, d) for d in d415_devices(rec)}
-        if not d415:
-            msg = f"{session_path}: no D415 stream in the recording; nothing to replay"
-            raise ProcessingError(msg)
-        cameras = tuple(sorted(d415))
-        try:
-            index = {c: d415[c].frame_index() for c in cameras}
-            intrinsics = {c: d415[c].intrinsics() for c in cameras}
-        except RecordingError as err:
-            raise CalibrationError(str(err)) from err
-        t_dev = {c: np.sort(index[c].t_dev_ns) for c in cameras}
-        _check_calibrated(cal, cameras, session_path, cal_source)
-        t_ref = {c: cal.clock(c).to_reference_ns(t_dev[c]) for c in cameras}
-        grouping = group_instants(t_dev, t_ref, tolerance=tolerance)
-        selected = grouping.instants[:: int(every)]
-        _log.info(
-            "%s: %d instants from %d cameras (period %.3f ms), %d selected (every %d)",
-            session_path,
-            len(grouping.instants),
-            len(cameras),
-            grouping.period_ns / 1e6,
-            len(selected),
-            every,
-        )
-        # The camera's own intrinsics (camera_info) and the calibrated pose.
-        live_cams = [
-            LiveCamera.from_calibration(
-                cal,
-                c,
-                K=intrinsics[c].k,
-                distortion=intrinsics[c].distortion,
-                depth_scale_m=index[c].depth_scale_m,
-            )
-            for c in cameras
-        ]
-        clouds: list[F64] = []
-        preds: list[Prediction] = []
-        kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
-        skipped = 0
-        t_measure = t_network = 0.0
-        with LivePipeline(
-            pred,
-            live_cams,
-            crop_box_m=crop_box_m,
-            merge_radius_m=merge_radius_m,
-            queue_size=max(2, int(batch)),
-        ) as pipeline:
-            frames = _instant_frames(rec, index, selected)
-            for inst, res in zip(selected, pipeline.stream(frames), strict=True):
-                t_measure += (res.timings_ms["measure_ms"] + res.timings_ms["merge_ms"]) / 1e3
-                t_network += res.timings_ms["predict_ms"] / 1e3
-                if res.prediction is None:
-                    skipped += 1
-                else:
-                    clouds.append(res.cloud_m)
-                    preds.append(res.prediction)
-                    kept.append((inst.t_ref_ns, res.cameras_used))
-                if progress is not None:
-                    progress(len(kept) + skipped, len(selected))
-    if skipped:
-        _log.warning("%s: %d instants skipped (fewer than 2 points)", session_path, skipped)
-    if not clouds:
-        msg = (
-            f"{session_path}: none of the {len(selected)} instants has 2 or more marker points "
-            "after the merge; are the markers lit and inside the capture box?"
-        )
-        raise ProcessingError(msg)
-
-    ck = pred.checkpoint
-    result = ReplayResult(
-        session=session_path,
-        outputs=paths,
-        cameras=cameras,
-        frames_per_camera={c: int(t_dev[c].size) for c in cameras},
-        t_ref_ns=np.array([t for t, _ in kept], dtype=np.int64),
-        cameras_per_instant=np.array([n for _, n in kept], dtype=np.int64),
-        points_per_instant=np.array([c.shape[0] for c in clouds], dtype=np.int64),
-        markers_m=np.stack([p.markers_m for p in preds]),
-        joints_m=np.stack([p.joints_m for p in preds]),
-        instants_total=len(grouping.instants),
-        skipped_instants=skipped,
-        every=int(every),
-        period_ns=grouping.period_ns,
-        reference_clock=cal.reference_clock,
-        world_frame=cal.world_frame,
-        checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
-        rotations=pred.rotations,
+    cal, _ = _read_calibration(calibration)
+    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
+        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
+        raise ValidationError(msg)
+    plan = plan_replay(session, cal, every=every, tolerance=tolerance)
+    span = replay_span(
+        plan,
+        cal,
+        predictor=predictor if predictor is not None else DemocapPredictor(),
+        crop_box_m=crop_box_m,
+        merge_radius_m=merge_radius_m,
+        batch=batch,
+        progress=progress,
     )
-    t0 = time.monotonic()
-    write_scene_mcap(result, paths["mcap"], clouds=clouds, calibration=cal, overwrite=overwrite)
-    write_replay_c3d(result, paths["c3d"], overwrite=overwrite)
-    write_replay_csv(result, paths["csv"], overwrite=overwrite)
-    t_write = time.monotonic() - t0
-    timings = {
-        "measure_s": t_measure,
-        "network_s": t_network,
-        "write_s": t_write,
-        "total_s": time.monotonic() - t_start,
-    }
-    result = replace(result, timings_s=timings)
+    result = write_replay(join_spans(plan, [span], outputs=paths), cal, overwrite=overwrite)
+    result = replace(result, timings_s={**result.timings_s, "total_s": time.monotonic() - t_start})
     _log.info(
         "%s: %d instants written (%s cameras per instant), %.1f points per cloud, %.1f s",
-        session_path,
+        plan.session,
         result.instants,
         result.camera_histogram,
         result.mean_points,
-        timings["total_s"],
+        result.timings_s["total_s"],
     )
     return result
 

@@ -744,6 +744,25 @@ def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path
     np.testing.assert_array_equal(back.valid[0, 1:], traj.valid[0, 1:])
 
 
+def test_a_signalling_nan_reads_as_a_gap_without_a_runtime_warning(tmp_path: Path) -> None:
+    """A signalling NaN (a damaged float file) raises the FPU's invalid flag when widened to
+    float64: the sample is a gap and nothing is printed on the user's stderr."""
+    import struct
+    import warnings
+
+    traj = _trajectories()
+    path = write_c3d(tmp_path / "snan.c3d", traj)
+    buf = bytearray(path.read_bytes())
+    data_start = (struct.unpack_from("<H", buf, 16)[0] - 1) * 512
+    struct.pack_into("<I", buf, data_start + 12, 0x7F800001)  # frame 0, point 0, fourth word
+    path.write_bytes(bytes(buf))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = read_c3d(path, isolate=False)
+    assert not back.valid[0, 0]
+    np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
+
+
 def test_a_force_plate_count_beyond_its_type_list_is_refused_before_the_native_reader(
     tmp_path: Path,
 ) -> None:

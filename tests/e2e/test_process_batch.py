@@ -6,7 +6,7 @@ of tests/e2e/conftest.py, shared with the ``eventcap run`` tests; the slow part)
 against its Vicon trial (``calib.toml``, DeMoCap), and the EventCap side files the simulator
 stands in for (``eventcap_detections.json``, ``eventcap_calib.toml``: the DAVIS's true
 calibration, ``eventcap_shape.json``). DeMoCap
-replays every 30th instant (3 instants); EventCap runs 2 batches from 1.0 s of the DAVIS
+replays every 30th instant (3 instants) as 2 spans; EventCap runs 2 batches from 1.0 s of the DAVIS
 timeline as 2 one-batch segments (the second warmed up on the first batch), so the stitching
 runs across a boundary.
 """
@@ -29,6 +29,7 @@ from mocaprig.cli import main
 from mocaprig.drivers_mock.eventcap_session import read_session_truth, write_session_inputs
 from mocaprig.process.batch.commands import register_process
 
+DEMOCAP = ["--democap-every", "30", "--democap-span", "2"]
 EVENTCAP = ["--eventcap-start", "1.0", "--eventcap-batches", "2", "--segment-batches", "1"]
 
 
@@ -43,7 +44,7 @@ class _Run:
 def _process(sim: Path, out: Path, *extra: str) -> _Run:
     parser = argparse.ArgumentParser(prog="mocaprig")
     register_process(parser.add_subparsers())
-    argv = [str(sim), "--out", str(out), "--democap-every", "30", *EVENTCAP, "--json", *extra]
+    argv = [str(sim), "--out", str(out), *DEMOCAP, *EVENTCAP, "--json", *extra]
     args = parser.parse_args(["process", *argv])
     stdout, stderr = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
@@ -92,6 +93,7 @@ def test_every_method_finishes_on_both_engines(runs: _Runs) -> None:
         assert rows["eventcap"]["details"]["segments"] == 2
         assert rows["eventcap"]["details"]["tracking_frames"] == 2 * 40 + 1
         assert rows["democap"]["details"]["instants"] == 3
+        assert rows["democap"]["details"]["spans"] == 2
         assert sorted(run.out.glob("take/.*")) == []  # no staging folder left
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import signal
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,12 +17,16 @@ from mocaprig.process.batch.tasks import ProcessSettings
 
 if TYPE_CHECKING:
     from mocaprig.calib.calibration import Calibration
+    from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan
 
 SERIAL = "02460013"
 #: Instants per fake batch (40 ms at 1 kHz).
 STEP = 40
 #: Batches of the fake take.
 BATCHES = 3
+#: Rig instants of the fake recording, and their period (ns).
+INSTANTS = 12
+PERIOD_NS = 33_333_333
 
 
 def calibration() -> Calibration:
@@ -55,24 +59,65 @@ def _first_try(session: SessionInputs, what: str) -> bool:
     return True
 
 
-def replay(session: SessionInputs, staging: str, settings: ProcessSettings) -> dict[str, Any]:
-    """Write the three replay files; fail as ``session.folder``'s ``mode`` file says."""
+def instants(session: SessionInputs, settings: ProcessSettings) -> ReplayPlan:
+    """A recording of :data:`INSTANTS` rig instants of one camera, every ``democap_every``-th
+    selected."""
+    from mocaprig.acquire.device_id import DeviceId
+    from mocaprig.acquire.device_streams import D415FrameIndex
+    from mocaprig.process.democap.instants import Instant
+    from mocaprig.process.democap.replay import ReplayPlan
+
+    t_dev = np.arange(INSTANTS, dtype=np.int64) * PERIOD_NS
+    index = D415FrameIndex(DeviceId("d415", "123"), t_dev, np.arange(INSTANTS), t_dev, t_dev)
+    every = settings.democap_every
+    selected = tuple(Instant(int(5e9 + t), {"d415/123": int(t)}) for t in t_dev[::every])
+    return ReplayPlan(
+        Path(session.recording),
+        ("d415/123",),
+        {"d415/123": index},
+        {},
+        selected,
+        instants_total=INSTANTS,
+        every=every,
+        period_ns=PERIOD_NS,
+    )
+
+
+def span(session: SessionInputs, plan: ReplayPlan) -> ReplaySpan:
+    """Markers and joints at x = the instant's time in s; fails as ``session.folder``'s
+    ``mode`` file says (the first span only)."""
+    from mocaprig.process.democap.replay import ReplaySpan
+
     mode_file = Path(session.folder) / "mode"
     mode = mode_file.read_text().strip() if mode_file.exists() else "ok"
-    out = Path(staging)
-    (out / "democap.mcap").write_text("partial")
-    if mode == "always":
-        msg = f"{session.name} cannot be replayed"
-        raise RuntimeError(msg)
-    if mode == "raise-once" and _first_try(session, "replay"):
-        msg = "boom"
-        raise RuntimeError(msg)
-    if mode == "die-once" and _first_try(session, "replay"):
-        os.kill(os.getpid(), signal.SIGKILL)  # the worker dies mid-task
-    (out / "democap.mcap").write_text(f"{session.name} every {settings.democap_every}")
-    (out / "democap.c3d").write_text("c3d")
-    (out / "democap.csv").write_text("csv")
-    return {"instants": 1, "outputs": {"mcap": str(out / "democap.mcap")}}
+    if plan.offset == 0:
+        if mode == "always":
+            msg = f"{session.name} cannot be replayed"
+            raise RuntimeError(msg)
+        if mode == "raise-once" and _first_try(session, "span"):
+            msg = "boom"
+            raise RuntimeError(msg)
+        if mode == "die-once" and _first_try(session, "span"):
+            os.kill(os.getpid(), signal.SIGKILL)  # the worker dies mid-task
+    t = np.array([i.t_ref_ns for i in plan.instants], dtype=np.int64)
+    n = t.size
+    x = np.zeros((n, 1, 3))
+    x[:, 0, 0] = t * 1e-9
+    return ReplaySpan(
+        plan.offset,
+        plan.offset + n,
+        t,
+        np.ones(n, dtype=np.int64),
+        np.repeat(x, 53, axis=1),
+        np.repeat(x, 19, axis=1),
+        tuple(x[i] for i in range(n)),
+        checkpoint="fake (1 epochs)",
+    )
+
+
+def csv_rows(path: Path) -> np.ndarray:
+    """The rows of a replay CSV (``time_s`` then mm), ``(N, 1 + 3·72)``."""
+    return np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
 
 
 def plan(session: SessionInputs, settings: ProcessSettings) -> EventcapPlan:

@@ -21,7 +21,7 @@ from tests.process.batch import fake_tasks
 
 @pytest.fixture(autouse=True)
 def fake_replay() -> Iterator[None]:
-    with patch.dict(runner.TASKS, {"replay": fake_tasks.replay}):
+    with patch.dict(runner.TASKS, {"instants": fake_tasks.instants, "span": fake_tasks.span}):
         yield
 
 
@@ -55,7 +55,7 @@ def test_json_summary_has_a_row_per_session_and_method(
     a, b = out["jobs"]
     assert (a["session"], a["method"], a["status"], a["error"]) == ("a", "democap", "done", None)
     assert a["outputs"][-1] == str(tmp_path / "out/a/democap/done.json")
-    assert (b["status"], b["stage"]) == ("failed", "replay")
+    assert (b["status"], b["stage"]) == ("failed", "span 0")
     assert b["error"] == "RuntimeError: b cannot be replayed"
     assert b["outputs"] == []
 

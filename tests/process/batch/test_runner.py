@@ -27,7 +27,12 @@ DEMOCAP = ProcessSettings(methods=("democap",), democap_every=3)
 
 @pytest.fixture(autouse=True)
 def fake_workers() -> Iterator[None]:
-    fakes = {"replay": fake_tasks.replay, "plan": fake_tasks.plan, "segment": fake_tasks.segment}
+    fakes = {
+        "instants": fake_tasks.instants,
+        "span": fake_tasks.span,
+        "plan": fake_tasks.plan,
+        "segment": fake_tasks.segment,
+    }
     with patch.dict(runner.TASKS, fakes):
         yield
 
@@ -64,9 +69,26 @@ def test_every_session_gets_its_outputs_and_manifest(tmp_path: Path) -> None:
         "democap.mcap",
         MANIFEST_NAME,
     ]
-    assert (tmp_path / "out/b/democap/democap.mcap").read_text() == "b every 3"
+    rows = fake_tasks.csv_rows(tmp_path / "out/b/democap/democap.csv")
+    # Every 3rd of the 12 instants, 33.3 ms apart, in one span.
+    np.testing.assert_allclose(rows[:, 0], [5.0, 5.1, 5.2, 5.3], atol=1e-8)
+    assert job.details["spans"] == 1
     assert "outputs" not in job.details  # the staging paths are not reported
     assert _parts(tmp_path / "out") == []
+
+
+def test_democap_spans_are_joined_into_the_files_of_one_span(tmp_path: Path) -> None:
+    sessions = _sessions(tmp_path, {"a": "ok"})
+    one = process_sessions(
+        sessions, out=tmp_path / "one", settings=DEMOCAP, engine=InProcessEngine()
+    )
+    split = ProcessSettings(methods=("democap",), democap_every=3, democap_span=3)
+    two = process_sessions(sessions, out=tmp_path / "two", settings=split, engine=InProcessEngine())
+    assert (one.jobs[0].details["spans"], two.jobs[0].details["spans"]) == (1, 2)
+    assert two.jobs[0].details["instants"] == 4
+    for name in ("democap.csv", "democap.c3d"):
+        a = (tmp_path / "one/a/democap" / name).read_bytes()
+        assert a == (tmp_path / "two/a/democap" / name).read_bytes()
 
 
 def test_finished_outputs_are_kept_and_skipped(tmp_path: Path) -> None:
@@ -101,7 +123,7 @@ def test_a_task_that_raises_is_retried_once(tmp_path: Path) -> None:
     )
     job = report.jobs[0]
     assert job.status == "done"
-    assert job.retried == ("replay: RuntimeError: boom",)
+    assert job.retried == ("span 0: RuntimeError: boom",)
     assert _parts(tmp_path / "out") == []
 
 
@@ -112,7 +134,7 @@ def test_a_failing_session_is_reported_by_stage_and_the_others_finish(tmp_path: 
     )
     bad, good = report.jobs
     assert not report.ok
-    assert (bad.status, bad.stage) == ("failed", "replay")
+    assert (bad.status, bad.stage) == ("failed", "span 0")
     assert bad.error == "RuntimeError: bad cannot be replayed"
     assert len(bad.retried) == 1
     assert good.status == "done"
@@ -182,5 +204,5 @@ def test_a_dead_pool_process_is_retried(tmp_path: Path) -> None:
     job = report.jobs[0]
     assert job.status == "done", job.error
     assert len(job.retried) == 1
-    assert job.retried[0].startswith("replay: BrokenProcessPool")
+    assert job.retried[0].startswith("span 0: BrokenProcessPool")
     assert _parts(tmp_path / "out") == []

@@ -32,6 +32,10 @@ from mocaprig.process.democap.replay import (
     METADATA_NAME,
     ReplayResult,
     group_instants,
+    join_spans,
+    output_paths,
+    plan_replay,
+    replay_span,
     run_replay,
     score_replay,
 )
@@ -134,6 +138,26 @@ def keep_torch_threads() -> Iterator[None]:
     threads = torch.get_num_threads()
     yield
     torch.set_num_threads(threads)
+
+
+def test_spans_of_a_plan_join_into_the_whole_replay(replayed: Replayed, tmp_path: Path) -> None:
+    # Every 7th instant, in two spans run in reverse order: what `mocaprig process` sends to
+    # its workers. Each instant stands alone, so the joined result is the unsplit one.
+    plan = plan_replay(replayed.session, replayed.calib, every=7)
+    spans = plan.spans(len(plan.instants) // 2)
+    parts = [
+        replay_span(plan.span(a, b), replayed.calibration, predictor=replayed.predictor)
+        for a, b in reversed(spans)
+    ]
+    joined = join_spans(plan, parts, outputs=output_paths(tmp_path / "r.mcap"))
+    whole = replay_span(plan, replayed.calibration, predictor=replayed.predictor)
+    assert len(parts) >= 2
+    np.testing.assert_array_equal(joined.t_ref_ns, whole.t_ref_ns)
+    np.testing.assert_array_equal(joined.t_ref_ns, replayed.result.t_ref_ns[::7])
+    np.testing.assert_allclose(joined.joints_m, whole.joints_m, atol=1e-9)
+    assert len(joined.clouds_m) == joined.instants
+    with pytest.raises(ValidationError, match="do not cover"):
+        join_spans(plan, parts[:1], outputs=output_paths(tmp_path / "r.mcap"))
 
 
 @pytest.mark.slow
