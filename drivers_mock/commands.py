@@ -237,6 +237,10 @@ def register_demo(subparsers: argparse._SubParsersAction[argparse.ArgumentParser
     p.set_defaults(func=_demo)
 
 
+def _diff_mm(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f} mm"
+
+
 def _demo(args: argparse.Namespace) -> int:
     from mocaprig.drivers_mock.demo import run_demo
 
@@ -332,8 +336,10 @@ def _demo(args: argparse.Namespace) -> int:
         ),
         (
             f"  mocaprig process ({pr['engine']}): DeMoCap on 1 instant in {pr['every']}, "
-            f"{pr['instants']} instants, {pr['outputs']} files in {pr['seconds']:.1f} s; run "
-            f"again: {pr['rerun_kept']} kept, {pr['rerun_seconds']:.1f} s"
+            f"{pr['instants']} instants in {pr['spans']} spans, {pr['outputs']} files in "
+            f"{pr['seconds']:.1f} s, vs the unsplit replay at {pr['vs_replay_instants']} shared "
+            f"instants: max {_diff_mm(pr['vs_replay_max_diff_mm'])} apart; run again: "
+            f"{pr['rerun_kept']} kept, {pr['rerun_seconds']:.1f} s"
             if "error" not in pr and pr
             else f"  mocaprig process: {pr.get('error', 'not run')}"
         ),

@@ -62,8 +62,10 @@ EVENTCAP_TAKE: dict[str, Any] = {"scenario": "karate", "seconds": 3.0, "start_s"
 EVENTCAP_BATCHES = 6
 #: Where on the DAVIS timeline (s) ``eventcap run`` starts on the demo's own recording.
 EVENTCAP_RUN_START_S = 1.6
-#: ``mocaprig process`` in the demo: DeMoCap on every n-th rig instant of the session.
+#: ``mocaprig process`` in the demo: DeMoCap on every n-th rig instant of the session, in spans
+#: of this many instants (so that the demo joins spans, as a cluster run does).
 PROCESS_EVERY = 15
+PROCESS_SPAN = 4
 
 #: The demo's figure of the replayed DeMoCap skeleton against the truth (in its folder).
 SKELETON_FIGURE = "democap_skeleton.png"
@@ -269,17 +271,32 @@ def _eventcap_run_figures(
     }
 
 
+def _csv_rows_by_time(path: Path) -> dict[str, npt.NDArray[np.float64]]:
+    """A replay CSV's rows (mm) by their ``time_s`` text."""
+    rows: dict[str, npt.NDArray[np.float64]] = {}
+    with path.open(encoding="utf-8") as fh:
+        next(fh, None)
+        for line in fh:
+            t, _, rest = line.partition(",")
+            rows[t] = np.array(rest.split(","), dtype=np.float64)
+    return rows
+
+
 def _process_figures(
-    session_dir: Path, out: Path, calib: Path, bar: Progress | None
+    session_dir: Path, out: Path, calib: Path, bar: Progress | None, replay_csv: Path | None
 ) -> dict[str, Any]:
-    """``mocaprig process`` (in-process engine) on the demo's session with DeMoCap, run twice:
-    the second run must find the first's outputs finished and keep them (resume)."""
+    """``mocaprig process`` (in-process engine) on the demo's session with DeMoCap in spans,
+    run twice: the second run must find the first's outputs finished and keep them (resume).
+    Its rows are compared with the demo's unsplit replay (``replay_csv``) at their shared
+    instants: each instant stands alone, so they must be the same."""
     from mocaprig.process.batch.engines import InProcessEngine
     from mocaprig.process.batch.runner import process_sessions
     from mocaprig.process.batch.sessions import find_sessions
     from mocaprig.process.batch.tasks import ProcessSettings
 
-    settings = ProcessSettings(methods=("democap",), democap_every=PROCESS_EVERY)
+    settings = ProcessSettings(
+        methods=("democap",), democap_every=PROCESS_EVERY, democap_span=PROCESS_SPAN
+    )
     sessions = find_sessions([session_dir], calib=calib)
     folder = out / "process"
     runs = []
@@ -295,11 +312,23 @@ def _process_figures(
     if job["status"] != "done":
         msg = f"mocaprig process on {session_dir}: DeMoCap {job['status']}: {job['error']}"
         raise ProcessingError(msg)
+    same: dict[str, Any] = {"vs_replay_instants": 0, "vs_replay_max_diff_mm": None}
+    if replay_csv is not None and replay_csv.is_file():
+        ours = _csv_rows_by_time(Path(next(p for p in job["outputs"] if p.endswith(".csv"))))
+        theirs = _csv_rows_by_time(replay_csv)
+        shared = sorted(set(ours) & set(theirs))
+        same["vs_replay_instants"] = len(shared)
+        if shared:
+            diff = max(float(np.max(np.abs(ours[t] - theirs[t]))) for t in shared)
+            same["vs_replay_max_diff_mm"] = diff
     return {
         "engine": first["engine"],
         "out": str(folder),
         "methods": list(settings.methods),
         "every": PROCESS_EVERY,
+        "span": PROCESS_SPAN,
+        "spans": job["details"].get("spans"),
+        **same,
         "status": job["status"],
         "seconds": job["seconds"],
         "outputs": len(job["outputs"]),
@@ -875,10 +904,15 @@ def run_demo(
         stages["process"] = "skipped: needs the calibration, whose stage failed"
     else:
         try:
+            replay_csv = figures.get("democap_replay", {}).get("results_csv")
             figures["process"] = _process_figures(
-                sim.out_dir, out, Path(calib_file), stage("process")
+                sim.out_dir,
+                out,
+                Path(calib_file),
+                stage("process"),
+                None if replay_csv is None else Path(replay_csv),
             )
-            stages["process"] = "done (mocaprig process: DeMoCap in-process, then resumed)"
+            stages["process"] = "done (mocaprig process: DeMoCap in spans, then resumed)"
         except MocaprigError as err:
             _log.error("process stage failed: %s", err)
             figures["process"] = {"error": str(err)}

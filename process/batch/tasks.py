@@ -16,9 +16,9 @@ file system, or an fsspec URL fetched by the worker, :func:`.sessions.local_path
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Final, Literal
+from typing import Final, Literal
 
 from mocaprig.errors import ValidationError
 from mocaprig.process.batch.segments import (
@@ -33,8 +33,10 @@ from mocaprig.process.batch.segments import (
 )
 from mocaprig.process.batch.sessions import SessionInputs, local_path
 
-if TYPE_CHECKING:
-    from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan
+# Imported with this module, not in the task: a Dask worker unpickles the next task's
+# ReplayPlan on its event-loop thread while a task runs on another, and two threads importing
+# the democap package at once can see it half initialised.
+from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan, plan_replay, replay_span
 
 __all__ = [
     "DEFAULT_DEMOCAP_SPAN",
@@ -134,8 +136,6 @@ def democap_plan_task(session: SessionInputs, settings: ProcessSettings) -> Repl
     Raises:
         ValidationError: the session has no calibration. The plan's errors otherwise.
     """
-    from mocaprig.process.democap.replay import plan_replay
-
     calibration = democap_calibration(session)
     return plan_replay(local_path(session.recording), calibration, every=settings.democap_every)
 
@@ -143,10 +143,6 @@ def democap_plan_task(session: SessionInputs, settings: ProcessSettings) -> Repl
 def democap_span_task(session: SessionInputs, plan: ReplayPlan) -> ReplaySpan:
     """DeMoCap on every instant of ``plan`` (a span of the session's plan,
     :meth:`~mocaprig.process.democap.replay.ReplayPlan.span`) with the committed network."""
-    from dataclasses import replace
-
-    from mocaprig.process.democap.replay import replay_span
-
     # The recording as this worker sees it (an fsspec URL is fetched where it runs).
     here = replace(plan, session=Path(local_path(session.recording)))
     return replay_span(here, democap_calibration(session))

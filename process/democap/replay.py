@@ -427,6 +427,29 @@ class ReplaySpan:
     rotations: int = 1
 
 
+def _check_every(every: int) -> None:
+    if isinstance(every, bool) or int(every) != every or every < 1:
+        msg = f"every must be an integer >= 1, got {every!r}"
+        raise ValidationError(msg)
+
+
+def _check_span_options(
+    predictor: DemocapPredictor | None, crop_box_m: Box | None, batch: int
+) -> None:
+    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
+        msg = f"batch must be an integer >= 1, got {batch!r}"
+        raise ValidationError(msg)
+    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
+        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
+        raise ValidationError(msg)
+    if predictor is not None and not predictor.predicts_markers:
+        msg = (
+            f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "
+            "estimates no markers; the replay writes markers, so use a markers-to-pose one"
+        )
+        raise ProcessingError(msg)
+
+
 def _read_calibration(calibration: Calibration | str | Path) -> tuple[Calibration, str]:
     if isinstance(calibration, Calibration):
         return calibration, "given"
@@ -450,9 +473,7 @@ def plan_replay(
             ``camera_info``.
         RecordingError: the recording is unreadable.
     """
-    if isinstance(every, bool) or int(every) != every or every < 1:
-        msg = f"every must be an integer >= 1, got {every!r}"
-        raise ValidationError(msg)
+    _check_every(every)
     session_path = Path(session)
     cal, cal_source = _read_calibration(calibration)
     with Recording(session_path) as rec:
@@ -529,18 +550,7 @@ def replay_span(
     if not 0 <= start <= stop <= n:
         msg = f"span [{start}, {stop}) is not within the plan's {n} instants"
         raise ValidationError(msg)
-    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
-        msg = f"batch must be an integer >= 1, got {batch!r}"
-        raise ValidationError(msg)
-    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
-        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
-        raise ValidationError(msg)
-    if predictor is not None and not predictor.predicts_markers:
-        msg = (
-            f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "
-            "estimates no markers; the replay writes markers, so use a markers-to-pose one"
-        )
-        raise ProcessingError(msg)
+    _check_span_options(predictor, crop_box_m, batch)
     cal, _ = _read_calibration(calibration)
     pred = predictor if predictor is not None else DemocapPredictor()
     selected = plan.instants[start:stop]
@@ -750,21 +760,11 @@ def run_replay(
         RecordingError: the recording is unreadable.
     """
     t_start = time.monotonic()
-    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
-        msg = f"batch must be an integer >= 1, got {batch!r}"
-        raise ValidationError(msg)
-    if predictor is not None and not predictor.predicts_markers:
-        msg = (
-            f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "
-            "estimates no markers; the replay writes markers, so use a markers-to-pose one"
-        )
-        raise ProcessingError(msg)
+    _check_every(every)
+    _check_span_options(predictor, crop_box_m, batch)
     paths = output_paths(out, c3d=c3d, csv=csv)
     _check_outputs(paths, overwrite)
     cal, _ = _read_calibration(calibration)
-    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
-        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
-        raise ValidationError(msg)
     plan = plan_replay(session, cal, every=every, tolerance=tolerance)
     span = replay_span(
         plan,

@@ -724,21 +724,29 @@ def test_real_c3d_numpy_decoder_matches_ezc3d(shared_data: Path) -> None:
     np.testing.assert_array_equal(residual < 0, ~ez.valid)
 
 
-def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path: Path) -> None:
-    """A float file whose residual word is a huge float (a damaged file, a fuzz input): that
-    sample is a gap, the others are intact, and numpy is never asked for an undefined cast."""
+def _read_with_fourth_word(
+    tmp_path: Path, fmt: str, value: float
+) -> tuple[MarkerTrajectories, MarkerTrajectories]:
+    """A float C3D of :func:`_trajectories` whose frame 0, point 0 fourth word is ``value``
+    packed as ``fmt``, and what the reader makes of it with every warning an error."""
     import struct
     import warnings
 
     traj = _trajectories()
-    path = write_c3d(tmp_path / "d.c3d", traj)
+    path = write_c3d(tmp_path / "w4.c3d", traj)
     buf = bytearray(path.read_bytes())
     data_start = (struct.unpack_from("<H", buf, 16)[0] - 1) * 512  # header word 9 (1-based)
-    struct.pack_into("<f", buf, data_start + 12, 1e30)  # frame 0, point 0, fourth word
+    struct.pack_into(fmt, buf, data_start + 12, value)
     path.write_bytes(bytes(buf))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        back = read_c3d(path, isolate=False)
+        return traj, read_c3d(path, isolate=False)
+
+
+def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path: Path) -> None:
+    """A float file whose residual word is a huge float (a damaged file, a fuzz input): that
+    sample is a gap, the others are intact, and numpy is never asked for an undefined cast."""
+    traj, back = _read_with_fourth_word(tmp_path, "<f", 1e30)
     assert not back.valid[0, 0]
     np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
     np.testing.assert_array_equal(back.valid[0, 1:], traj.valid[0, 1:])
@@ -747,18 +755,7 @@ def test_a_damaged_fourth_word_reads_as_a_gap_without_an_undefined_cast(tmp_path
 def test_a_signalling_nan_reads_as_a_gap_without_a_runtime_warning(tmp_path: Path) -> None:
     """A signalling NaN (a damaged float file) raises the FPU's invalid flag when widened to
     float64: the sample is a gap and nothing is printed on the user's stderr."""
-    import struct
-    import warnings
-
-    traj = _trajectories()
-    path = write_c3d(tmp_path / "snan.c3d", traj)
-    buf = bytearray(path.read_bytes())
-    data_start = (struct.unpack_from("<H", buf, 16)[0] - 1) * 512
-    struct.pack_into("<I", buf, data_start + 12, 0x7F800001)  # frame 0, point 0, fourth word
-    path.write_bytes(bytes(buf))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        back = read_c3d(path, isolate=False)
+    traj, back = _read_with_fourth_word(tmp_path, "<I", 0x7F800001)
     assert not back.valid[0, 0]
     np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
 

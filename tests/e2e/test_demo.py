@@ -83,6 +83,11 @@ def test_demo_command_reports_figures_against_truth(
     assert pr["instants"] == -(-rp["instants_total"] // 15)
     assert pr["outputs"] >= 3
     assert pr["rerun_kept"] == 1
+    # In spans of 4 instants, joined: each instant stands alone, so the rows are the unsplit
+    # replay's (every 15th instant is every 5th of the replay's every 3rd).
+    assert pr["spans"] == -(-pr["instants"] // 4) >= 2
+    assert pr["vs_replay_instants"] >= pr["instants"] - 1
+    assert pr["vs_replay_max_diff_mm"] <= 0.002  # the CSV's 3 decimals
     assert (Path(pr["out"]) / "session" / "democap" / "done.json").is_file()
     # EventCap on a simulated excerpt of fast motion, with the paper's baselines beside it.
     assert report["stages"]["eventcap"].startswith("done")

@@ -11,13 +11,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mocaprig.acquire.device_id import DeviceId
+from mocaprig.acquire.device_streams import D415FrameIndex
 from mocaprig.process.batch.segments import EventcapPlan, Segment, SegmentResult, plan_segments
 from mocaprig.process.batch.sessions import SessionInputs
 from mocaprig.process.batch.tasks import ProcessSettings
+from mocaprig.process.democap.instants import Instant
+from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan
 
 if TYPE_CHECKING:
     from mocaprig.calib.calibration import Calibration
-    from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan
 
 SERIAL = "02460013"
 #: Instants per fake batch (40 ms at 1 kHz).
@@ -62,11 +65,6 @@ def _first_try(session: SessionInputs, what: str) -> bool:
 def instants(session: SessionInputs, settings: ProcessSettings) -> ReplayPlan:
     """A recording of :data:`INSTANTS` rig instants of one camera, every ``democap_every``-th
     selected."""
-    from mocaprig.acquire.device_id import DeviceId
-    from mocaprig.acquire.device_streams import D415FrameIndex
-    from mocaprig.process.democap.instants import Instant
-    from mocaprig.process.democap.replay import ReplayPlan
-
     t_dev = np.arange(INSTANTS, dtype=np.int64) * PERIOD_NS
     index = D415FrameIndex(DeviceId("d415", "123"), t_dev, np.arange(INSTANTS), t_dev, t_dev)
     every = settings.democap_every
@@ -86,8 +84,6 @@ def instants(session: SessionInputs, settings: ProcessSettings) -> ReplayPlan:
 def span(session: SessionInputs, plan: ReplayPlan) -> ReplaySpan:
     """Markers and joints at x = the instant's time in s; fails as ``session.folder``'s
     ``mode`` file says (the first span only)."""
-    from mocaprig.process.democap.replay import ReplaySpan
-
     mode_file = Path(session.folder) / "mode"
     mode = mode_file.read_text().strip() if mode_file.exists() else "ok"
     if plan.offset == 0:
