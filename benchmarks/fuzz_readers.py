@@ -17,8 +17,10 @@ binary garbage. Each input is read once and classified:
 - ``hang``: the read took longer than the reader's bound (``signal.setitimer`` in-process; the
   C3D reader runs its native decoder in a child process of its own with its own timeout);
 - ``over_alloc``: the read's peak Python allocation (``tracemalloc``, numpy included) exceeded
-  64 MiB + ``alloc_factor`` x the file size. Process peak RSS growth is reported per reader too
-  (it sees what tracemalloc does not: torch tensors, native code).
+  64 MiB + ``alloc_factor`` x the file size, or a child process the read waited for (the C3D
+  reader's native decoder) set a new peak resident size above 256 MiB + ``alloc_factor`` x the
+  file size. Process peak RSS growth is reported per reader too (it sees what tracemalloc does
+  not: torch tensors, native code).
 
 The sync box is fuzzed over its serial line (a pyserial URL handler ``fuzz://FILE`` that answers
 each command with the next segment of the file, segments separated by ASCII RS, 0x1E), the
@@ -104,6 +106,8 @@ HOSTILE_NUMBERS: tuple[str, ...] = (
     "١٢",
     "1e",
 )
+#: A child decoder's resident size allowed before the file's share (interpreter, numpy, ezc3d).
+_CHILD_RSS_BASE = 256 * 1024 * 1024
 HOSTILE_INT16: tuple[int, ...] = (0, 1, -1, 2, 255, 256, 32767, -32768, 512, 4096)
 HOSTILE_U64: tuple[int, ...] = (
     0,
@@ -420,6 +424,7 @@ def run_reader(
             res.inputs += 1
             tracemalloc.reset_peak()
             base = tracemalloc.get_traced_memory()[0]
+            child0 = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
             verdict = ""
             signal.setitimer(signal.ITIMER_REAL, spec.time_bound_s)
             try:
@@ -452,9 +457,18 @@ def run_reader(
                 signal.setitimer(signal.ITIMER_REAL, 0)
             peak = tracemalloc.get_traced_memory()[1] - base
             res.peak_alloc_bytes = max(res.peak_alloc_bytes, peak)
+            # ru_maxrss (KiB on Linux) is the peak over every child waited for: a new peak
+            # above the bound was set by this input's child.
+            child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+            child_bound = _CHILD_RSS_BASE + spec.alloc_factor * len(mut.data)
             if peak > 64 * MIB + spec.alloc_factor * len(mut.data):
                 res.over_alloc += 1
                 verdict = verdict or f"over-alloc: {peak / MIB:.0f} MiB for {len(mut.data)} B"
+            elif child > child0 and child * 1024 > child_bound:
+                res.over_alloc += 1
+                verdict = verdict or (
+                    f"over-alloc: child RSS {child / 1024:.0f} MiB for {len(mut.data)} B"
+                )
             if verdict:
                 if verdict == "hang":
                     res.hangs += 1

@@ -8,7 +8,11 @@
 * :func:`read_points_isolated` and :func:`run_isolated` run those decoders in a child interpreter
   (``python -c``, not ``multiprocessing``, whose spawn/forkserver children re-import the caller's
   ``__main__``), so a crash inside ``ezc3d`` (it segfaults on some malformed parameter sections)
-  becomes a :class:`ViconFileError` instead of killing the caller.
+  becomes a :class:`ViconFileError` instead of killing the caller. On Linux the child's address
+  space is capped at what it has mapped after its imports plus :func:`isolate_memory_budget`
+  (256 MiB + 64 × the file size; ezc3d needs ≈ 7 × the file size on a real Nexus file): a
+  damaged count that sends ezc3d after 12 GB for a 2.5 kB file (fuzz inputs: ROTATION:RATIO
+  −1, a parameter's type or dimension count changed) fails at once instead of filling memory.
 
 Residual byte. The fourth word of a point holds the camera mask in its high byte and
 residual / |POINT:SCALE| in its low byte (c3d.org; py-c3d agrees). ``ezc3d`` 1.7.2 reads and
@@ -51,6 +55,35 @@ _ISOLATE_TIMEOUT_PER_MB_S = 2.0
 def isolate_timeout_s(n_bytes: int) -> float:
     """How long (s) an isolated decoder may take on a file of ``n_bytes`` before it is killed."""
     return _ISOLATE_TIMEOUT_BASE_S + _ISOLATE_TIMEOUT_PER_MB_S * n_bytes / 1e6
+
+
+_ISOLATE_MEMORY_BASE_BYTES = 256 << 20
+_ISOLATE_MEMORY_PER_BYTE = 64
+
+
+def isolate_memory_budget(n_bytes: int) -> int:
+    """Bytes an isolated decoder may map beyond its interpreter and libraries for a file of
+    ``n_bytes``."""
+    return _ISOLATE_MEMORY_BASE_BYTES + _ISOLATE_MEMORY_PER_BYTE * int(n_bytes)
+
+
+def _cap_address_space(n_bytes: int) -> int | None:  # pragma: no cover - child
+    """Cap this (child) process's address space at its present size plus the budget of a file
+    of ``n_bytes`` (Linux; elsewhere nothing is capped and None is returned)."""
+    try:
+        import resource
+
+        statm = Path("/proc/self/statm").read_text(encoding="ascii")
+        mapped = int(statm.split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (ImportError, OSError, ValueError):
+        return None
+    budget = isolate_memory_budget(n_bytes)
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = mapped + budget
+    if hard != resource.RLIM_INFINITY:
+        limit = min(limit, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    return budget
 
 
 def _f4_to_f8(raw: bytes, end: str) -> FloatArray:
@@ -179,7 +212,13 @@ def _child_entry(
 ) -> int:  # pragma: no cover - child
     """Entry point of the isolated child: decode ``path`` (its points, or with ``kind`` =
     ``"analogs"`` its analog channels), save arrays to ``out_npz``."""
+    budget = None
     try:
+        # The native readers are imported before the cap, which bounds what the file makes
+        # them allocate, not the libraries.
+        if processor in ("intel", "dec") or kind == "analogs":
+            import ezc3d  # noqa: F401
+        budget = _cap_address_space(Path(path).stat().st_size)
         if kind == "analogs":
             analogs, reader = read_analogs_ezc3d(path)
             np.savez(out_npz, analogs=analogs, reader=np.array(reader))
@@ -187,7 +226,17 @@ def _child_entry(
             xyz, residual, reader = _BACKENDS[processor](path)
             np.savez(out_npz, xyz=xyz, residual=residual, reader=np.array(reader))
     except BaseException as err:
-        sys.stderr.write(f"\n{_CHILD_ERROR_TAG}{type(err).__name__}: {err}\n")
+        reason = f"{type(err).__name__}: {err}"
+        # ezc3d's std::bad_alloc reaches Python as a RuntimeError naming it.
+        if isinstance(err, MemoryError) or "bad_alloc" in str(err):
+            size = Path(path).stat().st_size
+            what = f"more than {budget >> 20} MiB" if budget else "more memory than there is"
+            reason = (
+                f"ViconFileError: {path}: its parameters ask the C3D reader for {what} for a "
+                f"file of {size} bytes ({reason}); a count or a parameter's type in the "
+                "parameter section is damaged; re-export it from Vicon Nexus"
+            )
+        sys.stderr.write(f"\n{_CHILD_ERROR_TAG}{reason}\n")
         return _CHILD_ERROR_EXIT
     return 0
 

@@ -760,6 +760,24 @@ def test_a_signalling_nan_reads_as_a_gap_without_a_runtime_warning(tmp_path: Pat
     np.testing.assert_array_equal(back.valid[1:], traj.valid[1:])
 
 
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="the cap is Linux-only")
+def test_a_damaged_count_that_sends_the_native_reader_after_gigabytes_is_refused(
+    tmp_path: Path,
+) -> None:
+    """ROTATION:RATIO = -1 (fuzz input #2991, seed 17) made ezc3d map 12 GB over 45-64 s for
+    a 2.5 kB file; the child's capped address space turns it into a clean error at once."""
+    from mocaprig.calib.c3d_layout import validate_c3d
+
+    path = write_c3d(tmp_path / "rot.c3d", _trajectories())
+    offset = validate_c3d(path).parameter_offsets["ROTATION:RATIO"]
+    buf = bytearray(path.read_bytes())
+    struct.pack_into("<h", buf, offset, -1)
+    path.write_bytes(bytes(buf))
+    with pytest.raises(ViconFileError, match=r"ask the C3D reader for more than \d+ MiB"):
+        read_c3d(path)
+    assert c3d_decode.isolate_memory_budget(2560) < 300 << 20
+
+
 def test_a_force_plate_count_beyond_its_type_list_is_refused_before_the_native_reader(
     tmp_path: Path,
 ) -> None:
