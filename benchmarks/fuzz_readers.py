@@ -18,7 +18,7 @@ binary garbage. Each input is read once and classified:
   C3D reader runs its native decoder in a child process of its own with its own timeout);
 - ``over_alloc``: the read's peak Python allocation (``tracemalloc``, numpy included) exceeded
   64 MiB + ``alloc_factor`` x the file size, or a child process the read waited for (the C3D
-  reader's native decoder) set a new peak resident size above 256 MiB + ``alloc_factor`` x the
+  reader's native decoder) set a new peak resident size above 384 MiB + ``alloc_factor`` x the
   file size. Process peak RSS growth is reported per reader too (it sees what tracemalloc does
   not: torch tensors, native code).
 
@@ -106,8 +106,9 @@ HOSTILE_NUMBERS: tuple[str, ...] = (
     "١٢",
     "1e",
 )
-#: A child decoder's resident size allowed before the file's share (interpreter, numpy, ezc3d).
-_CHILD_RSS_BASE = 256 * 1024 * 1024
+#: A child decoder's resident size allowed before the file's share: its interpreter and
+#: libraries (128 MiB) and the C3D child's address-space budget (256 MiB, c3d_decode).
+_CHILD_RSS_BASE = 384 * 1024 * 1024
 HOSTILE_INT16: tuple[int, ...] = (0, 1, -1, 2, 255, 256, 32767, -32768, 512, 4096)
 HOSTILE_U64: tuple[int, ...] = (
     0,
