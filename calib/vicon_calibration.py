@@ -273,6 +273,11 @@ def _choose_pool(
 #: A pooled clock's reprojection cost must be below this fraction of the other convention's
 #: to tell the pulse phase when the stretch offsets do not.
 _POOL_COST_RATIO = 0.97
+#: ... and, in the final pass, the better pool's stretch misfit below this fraction of the
+#: master's exposure (the shift the phase makes): with video clocks several ms off, the cost
+#: prefers whichever pool their error happens to favour (world 1013: 6.3 ms misfits, an
+#: 8.5 ms exposure, the wrong phase at a cost ratio of 0.78).
+_POOL_COST_MAX_MISFIT = 0.25
 
 
 def _with_timing(
@@ -318,6 +323,14 @@ def _assumption_notes(
             "the DAVIS ↔ D415 relation by one exposure"
         )
     return out
+
+
+def _master_exposure_ns(cams: Sequence[CalibCamera]) -> float:
+    """The D415 master's exposure (ns); 8.5 ms when it is unknown."""
+    master = next((c for c in cams if c.sync_mode == 1), None)
+    if master is None or master.exposure_us is None:
+        return 8.5e6
+    return float(master.exposure_us) * 1e3
 
 
 def _expected_slave_delays(
@@ -541,10 +554,19 @@ def calibrate_vicon(
             pools, opt
         )
         if not pool_told and len(pools) == 2:
-            # The stretches do not tell: the reprojection of every camera's frames may.
+            # The stretches do not tell: the reprojection of every camera's frames may, when
+            # the pooled clocks are good enough to resolve the phase's shift (the first pass
+            # only seeds the poses of the final one).
             costs = [sum(shift_cost(c.name, pl[1][c.name]) for c in cams) for pl in pools]
             lo = int(np.argmin(costs))
-            if math.isfinite(costs[lo]) and costs[lo] < _POOL_COST_RATIO * costs[1 - lo]:
+            misfit_ok = pass_ == 0 or min(pl[4] for pl in pools) < _POOL_COST_MAX_MISFIT * (
+                _master_exposure_ns(cams)
+            )
+            if (
+                misfit_ok
+                and math.isfinite(costs[lo])
+                and costs[lo] < _POOL_COST_RATIO * costs[1 - lo]
+            ):
                 pool_timing, mappings, pool_notes, pool_ties = pools[lo][:4]
                 pool_told = True
                 phase_notes = [
