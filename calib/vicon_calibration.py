@@ -325,6 +325,21 @@ def _assumption_notes(
     return out
 
 
+def _pool_by_cost(
+    costs: Sequence[float], misfits_ns: Sequence[float], exposure_ns: float, *, final: bool
+) -> int | None:
+    """The pool (of two) whose reprojection cost tells the pulse phase: below
+    :data:`_POOL_COST_RATIO` × the other's and, in the ``final`` pass, with pooled clocks whose
+    better stretch misfit is below :data:`_POOL_COST_MAX_MISFIT` × the master's exposure;
+    None when the cost does not tell."""
+    if final and not min(misfits_ns) < _POOL_COST_MAX_MISFIT * exposure_ns:
+        return None
+    lo = int(np.argmin(costs))
+    if math.isfinite(costs[lo]) and costs[lo] < _POOL_COST_RATIO * costs[1 - lo]:
+        return lo
+    return None
+
+
 def _master_exposure_ns(cams: Sequence[CalibCamera]) -> float:
     """The D415 master's exposure (ns); 8.5 ms when it is unknown."""
     master = next((c for c in cams if c.sync_mode == 1), None)
@@ -558,15 +573,11 @@ def calibrate_vicon(
             # the pooled clocks are good enough to resolve the phase's shift (the first pass
             # only seeds the poses of the final one).
             costs = [sum(shift_cost(c.name, pl[1][c.name]) for c in cams) for pl in pools]
-            lo = int(np.argmin(costs))
-            misfit_ok = pass_ == 0 or min(pl[4] for pl in pools) < _POOL_COST_MAX_MISFIT * (
-                _master_exposure_ns(cams)
+            by_cost = _pool_by_cost(
+                costs, [pl[4] for pl in pools], _master_exposure_ns(cams), final=pass_ > 0
             )
-            if (
-                misfit_ok
-                and math.isfinite(costs[lo])
-                and costs[lo] < _POOL_COST_RATIO * costs[1 - lo]
-            ):
+            if by_cost is not None:
+                lo = by_cost
                 pool_timing, mappings, pool_notes, pool_ties = pools[lo][:4]
                 pool_told = True
                 phase_notes = [

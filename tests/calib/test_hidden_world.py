@@ -16,7 +16,7 @@ import pytest
 
 from mocaprig.calib.calibration import ClockMapping
 from mocaprig.calib.sync_edges import find_sync_edges
-from mocaprig.calib.vicon_calibration import _refuse_unobservable_phase
+from mocaprig.calib.vicon_calibration import _pool_by_cost, _refuse_unobservable_phase
 from mocaprig.calib.vicon_calibration_davis import DavisMotion, motion_period_shift
 from mocaprig.calib.vicon_calibration_options import CalibrationOptions, D415PulseTiming
 from mocaprig.calib.vicon_calibration_sync import SyncInputs, sync_clocks
@@ -156,6 +156,16 @@ def test_the_reprojection_cost_tells_the_phase_when_the_video_clock_cannot() -> 
     assert used[-1].pulse_at == "exposure-start"
     assert abs(error_ns(out["m"])) < 5_000.0
     assert any("by the reprojection cost" in n for n in notes)
+
+
+def test_the_reprojection_cost_does_not_tell_the_phase_through_video_clocks_ms_off() -> None:
+    # World 1013 (seed of calibrate_worlds): video clocks 7.3 / 6.3 ms off under the two
+    # conventions, an 8.5 ms exposure, costs 17,370 vs 22,370 for the wrong convention.
+    costs, far, near, exposure = [1.737e4, 2.237e4], [7.25e6, 6.283e6], [0.6e6, 2.8e6], 8.5e6
+    assert _pool_by_cost(costs, far, exposure, final=True) is None
+    assert _pool_by_cost(costs, far, exposure, final=False) == 0  # the first pass seeds poses
+    assert _pool_by_cost(costs, near, exposure, final=True) == 0
+    assert _pool_by_cost([1.00e4, 1.02e4], near, exposure, final=True) is None  # within 3 %
 
 
 # ------------------------------------------------------------------- DAVIS pairing by motion
