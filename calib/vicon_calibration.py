@@ -340,9 +340,14 @@ def _pool_by_cost(
     return None
 
 
+def _master(cams: Sequence[CalibCamera]) -> CalibCamera | None:
+    """The D415 master (``sync_mode`` 1) among ``cams``, if any."""
+    return next((c for c in cams if c.sync_mode == 1), None)
+
+
 def _master_exposure_ns(cams: Sequence[CalibCamera]) -> float:
     """The D415 master's exposure (ns); 8.5 ms when it is unknown."""
-    master = next((c for c in cams if c.sync_mode == 1), None)
+    master = _master(cams)
     if master is None or master.exposure_us is None:
         return 8.5e6
     return float(master.exposure_us) * 1e3
@@ -354,7 +359,7 @@ def _expected_slave_delays(
     """Per slave (``sync_mode`` 2) how much later than the master's its exposure comes beyond
     the trigger delay under ``timing`` (ns): the master's exposure when the pulse comes at its
     readout start, else 0 (also without a master or its exposure)."""
-    master = next((c for c in cams if c.sync_mode == 1), None)
+    master = _master(cams)
     if master is None or master.exposure_us is None:
         return {}
     lag = timing.pulse_lag_ns(float(master.exposure_us) * 1e3)
@@ -373,7 +378,7 @@ def _refuse_unobservable_phase(
 
     Raises:
         CalibrationError: the phase is needed, not observable, and ``opt.force`` is off."""
-    master = next((c for c in cams if c.sync_mode == 1), None)
+    master = _master(cams)
     slaves = [c.name for c in cams if c.sync_mode == 2]
     if master is None or master.exposure_us is None or not (slaves or davis_inputs):
         return

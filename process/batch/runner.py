@@ -52,6 +52,7 @@ from mocaprig.process.batch.tasks import (
     eventcap_plan_task,
     eventcap_segment_task,
 )
+from mocaprig.process.democap.replay import join_spans, output_paths, write_replay
 
 __all__ = [
     "MANIFEST_NAME",
@@ -361,8 +362,6 @@ def process_sessions(
         say(job, "started")
 
     def write_replay_files(job: _Job) -> None:
-        from mocaprig.process.democap.replay import join_spans, output_paths, write_replay
-
         plan = _plan(job)
         staging = job.new_staging()
         out = output_paths(staging / f"{OUTPUT_STEM['democap']}.mcap")

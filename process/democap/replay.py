@@ -24,8 +24,9 @@
    :func:`write_replay_csv`).
 
 The steps are functions of their own, so that a long recording can run in parallel (``mocaprig
-process``, docs/cluster.md): :func:`plan_replay` (1–3), :func:`replay_span` (4–5, on any span
-of the instants: each instant stands alone), :func:`join_spans` and :func:`write_replay` (6);
+process``, docs/cluster.md): :func:`plan_replay` (1, 2 and the choice of 3),
+:func:`replay_span` (the reading of 3, then 4–5, on any span of the instants: each instant
+stands alone), :func:`join_spans` and :func:`write_replay` (6);
 :func:`run_replay` chains them over one span of every instant.
 
 Outputs (docs/democap.md "Replay"):
@@ -463,8 +464,8 @@ def plan_replay(
     every: int = 1,
     tolerance: float = INSTANT_TOLERANCE,
 ) -> ReplayPlan:
-    """Steps 1–3 of the replay (module doc): index the D415 frames, put them on the reference
-    clock, group them into instants and select every ``every``-th.
+    """Steps 1–3 of the replay (module doc) but the reading: index the D415 frames, put them on
+    the reference clock, group them into instants and select every ``every``-th.
 
     Raises:
         ValidationError: bad ``every`` or ``tolerance``.
@@ -527,8 +528,9 @@ def replay_span(
     batch: int = 16,
     progress: Callable[[int, int], None] | None = None,
 ) -> ReplaySpan:
-    """Steps 4–5 of the replay (module doc) on the instants ``plan.instants[start:stop]``
-    (indices of the returned span count from the whole plan's first instant, ``plan.offset``).
+    """Step 3's reading and steps 4–5 of the replay (module doc) on the instants
+    ``plan.instants[start:stop]`` (indices of the returned span count from the whole plan's
+    first instant, ``plan.offset``).
 
     Each instant is processed on its own (no state is carried from one to the next), so spans
     of one plan can run anywhere, in any order, and :func:`join_spans` gives what one span
