@@ -7,8 +7,9 @@
    start** (markers within ``static_tolerance_m`` of the first frames) and its median cloud; the
    claps (``mocaprig.calib.time_align.find_claps_vicon``; none is an error).
 2. **Reading**: the recording is measured (``calib.markers.measure_frame``) only in device-time
-   windows — the first ``head_window_s``, around each Vicon clap, and ``extra_windows`` — found
-   by bisection over the host log time, all cameras in one pass per window.
+   windows — the first ``head_window_s``, around each Vicon clap, and ``extra_windows`` (each
+   with its neighbour where the Vicon markers move fastest) — found by bisection over the host
+   log time, all cameras in one pass per window.
 3. **Registration** per camera on its static start (blobs still within
    ``static_tolerance_px``): :func:`calib.registration.register_camera` (coarse alignment without
    an initial pose, gated matching, bundle adjustment).
@@ -61,10 +62,11 @@ import dataclasses
 import datetime as _dt
 import logging
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
@@ -108,6 +110,7 @@ from mocaprig.calib.vicon_calibration_sync import (
     sync_clocks,
 )
 from mocaprig.calib.vicon_calibration_video_clock import (
+    STRETCH_SIGMA_FLOOR_NS,
     ViconInterp,
     claps_speed_clock,
     grid_offset,
@@ -135,6 +138,7 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
 
 # The steps' former private names in this module, which the tests still reach.
 _line_clock = line_clock
@@ -209,6 +213,40 @@ class ViconCalibrationResult:
         }
 
 
+#: How far (fraction of the session) an extra clock window may move from its nominal place
+#: to where the Vicon markers move fastest.
+_WINDOW_REACH: Final = 0.05
+
+
+def _busiest_window(
+    t_ns: I64, positions_m: F64, centre_ns: int, *, reach_ns: int, half_ns: int
+) -> int:
+    """Centre (Vicon ns) of the window of ±``half_ns`` within ``reach_ns`` of ``centre_ns``
+    where the Vicon markers (positions ``(F, M, 3)`` m at ``t_ns``) move fastest on average.
+
+    A stretch's clock offset is only as good as its markers' image speed (a blob bias of a
+    fraction of a pixel reads as bias / speed), so the clock's windows go where the actor
+    moves, close enough to their nominal place to keep the spread the drift needs."""
+    if len(t_ns) < 3:
+        return centre_ns
+    dt = np.diff(t_ns).astype(np.float64) * 1e-9
+    step = np.linalg.norm(np.diff(positions_m, axis=0), axis=2) / dt[:, None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # frames with every marker in a gap
+        speed = np.nan_to_num(np.nanmean(step, axis=1), nan=0.0)
+    cum = np.concatenate([[0.0], np.cumsum(speed)])
+    mids = t_ns[1:].astype(np.float64)
+    lo = np.searchsorted(mids, mids - half_ns)
+    hi = np.searchsorted(mids, mids + half_ns)
+    mean = (cum[hi] - cum[lo]) / np.maximum(hi - lo, 1)
+    near = np.abs(mids - centre_ns) <= reach_ns
+    inside = (mids - half_ns >= mids[0]) & (mids + half_ns <= mids[-1])
+    ok = near & inside
+    if not ok.any():
+        return centre_ns
+    return int(mids[np.flatnonzero(ok)[np.argmax(mean[ok])]])
+
+
 def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     out: list[tuple[int, int]] = []
     for lo, hi in sorted(windows):
@@ -231,13 +269,23 @@ def _with_pulse_timing(opt: CalibrationOptions, timing: D415PulseTiming) -> Cali
 def _pool_misfit_ns(
     mappings: Mapping[str, ClockMapping], fits: Mapping[str, tuple[F64, F64, F64]]
 ) -> float:
-    """Median |stretch offset − mapping| over every camera's stretches (ns)."""
-    res = []
-    for name, (t_w, d_w, _) in fits.items():
+    """Median |stretch offset − mapping| over every camera's stretches (ns), each stretch
+    weighted as in the clock line (a stretch of slow markers says little about the phase)."""
+    res, wts = [], []
+    for name, (t_w, d_w, s_w) in fits.items():
         if name in mappings and len(t_w):
             t = np.round(t_w).astype(np.int64)
             res.append(np.abs(t_w + d_w - mappings[name].to_reference_ns(t)))
-    return float(np.median(np.concatenate(res))) if res else math.nan
+            wts.append(1.0 / (s_w**2 + STRETCH_SIGMA_FLOOR_NS**2))
+    if not res:
+        return math.nan
+    r, w = np.concatenate(res), np.concatenate(wts)
+    ok = np.isfinite(r) & np.isfinite(w)
+    if not ok.any():
+        return math.nan
+    order = np.argsort(r[ok])
+    cum = np.cumsum(w[ok][order])
+    return float(r[ok][order][np.searchsorted(cum, 0.5 * cum[-1])])
 
 
 def _choose_pool(
@@ -356,14 +404,25 @@ def _master_exposure_ns(cams: Sequence[CalibCamera]) -> float:
 def _expected_slave_delays(
     cams: Sequence[CalibCamera], timing: D415PulseTiming
 ) -> dict[str, float]:
-    """Per slave (``sync_mode`` 2) how much later than the master's its exposure comes beyond
-    the trigger delay under ``timing`` (ns): the master's exposure when the pulse comes at its
-    readout start, else 0 (also without a master or its exposure)."""
+    """Per slave (``sync_mode`` 2) its frame stamp minus the master's of the same pulse under
+    ``timing`` (ns, :meth:`D415PulseTiming.slave_delay_ns`: the trigger delay, half their
+    exposure difference and, with the pulse at the master's readout start, the master's
+    exposure); the trigger delay alone when the master's exposure is unknown; none without a
+    master. The stretch offsets then move a slave's constant away from this only as far as
+    they are sure (its published spread is ±0.1 ms, about a tenth of what they resolve)."""
     master = _master(cams)
-    if master is None or master.exposure_us is None:
+    if master is None:
         return {}
-    lag = timing.pulse_lag_ns(float(master.exposure_us) * 1e3)
-    return {c.name: lag for c in cams if c.sync_mode == 2 and lag}
+    if master.exposure_us is None:
+        return {c.name: timing.slave_trigger_delay_us * 1e3 for c in cams if c.sync_mode == 2}
+    m_exp = float(master.exposure_us) * 1e3
+    return {
+        c.name: timing.slave_delay_ns(
+            m_exp, m_exp if c.exposure_us is None else float(c.exposure_us) * 1e3
+        )
+        for c in cams
+        if c.sync_mode == 2
+    }
 
 
 def _refuse_unobservable_phase(
@@ -498,8 +557,15 @@ def calibrate_vicon(
         span_ns = int(t_vicon[-1] - v_first)  # ≈ the session
         windows_v = [(c.t_ns - 800_000_000, c.t_ns + 400_000_000) for c in vicon_claps]
         for frac in opt.extra_windows:
-            mid = int(v_first) + round(frac * span_ns)
-            windows_v.append((mid - 300_000_000, mid + 300_000_000))
+            # The nominal window (its slow markers serve the poses) and, near it, where the
+            # markers move fastest (the clock's stretches are only as good as their speed).
+            nominal = int(v_first) + round(frac * span_ns)
+            busiest = _busiest_window(
+                t_vicon, traj.positions_m, nominal,
+                reach_ns=round(_WINDOW_REACH * span_ns), half_ns=300_000_000,
+            )  # fmt: skip
+            for mid in {nominal, busiest}:
+                windows_v.append((mid - 300_000_000, mid + 300_000_000))
         frames_all: dict[str, list[MarkerFrame]] = {c.name: list(head[c.name]) for c in cams}
         for lo_v, hi_v in _merge_windows(windows_v):
             dev_windows = {}

@@ -139,7 +139,8 @@ class CalibrationOptions:
         min_area_ratio: Blobs whose area × depth² is below this fraction of the camera's median
             (partly occluded markers) are left out of the final bundle adjustment; 0 keeps all.
         extra_windows: Further 0.6 s windows read for the clock fit, as fractions of the
-            session (the windows around the Vicon claps are always read).
+            session (the windows around the Vicon claps are always read); beside each, the
+            0.6 s within ±5 % of the session where the Vicon markers move fastest.
         static_tolerance_m: Vicon markers within this of the first frames count as still (m).
         static_tolerance_px: D415 blobs within this of the first frame count as still (px).
         min_static_frames: Fewest still D415 frames a camera needs.

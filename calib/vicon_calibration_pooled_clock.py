@@ -123,8 +123,9 @@ def pooled_clocks(
     weighted line (:func:`_shared_line_fit`) is fitted through all of them (N cameras' worth
     of data; a camera whose own stretches are poor is outvoted instead of getting a poor
     clock), plus a constant per camera from its inlier stretches (a slave exposes a fixed
-    trigger delay after the pulse). A camera whose frames do not pair (free-running, counters
-    restarted, too little data) keeps its own line, and a note says so.
+    trigger delay after the pulse; their weighted mean, shrunk towards the convention's). A
+    camera whose frames do not pair (free-running, counters restarted, too little data) keeps
+    its own line, and a note says so.
 
     Args:
         frames: Per camera the frames' ``(device times ns, frame counters)``.
@@ -138,10 +139,11 @@ def pooled_clocks(
             alone cannot always tell it.
         ties_out: Filled with each pooled camera's tie to the pivot (the pivot's own is the
             identity), for the sync-channel clocks (:func:`sync_clocks`).
-        expected_delays_ns: Per camera the part of its exposure's delay after the master's
-            that the D415 pulse convention predicts beyond the trigger delay (ns; missing: 0):
-            the master's exposure for a slave when the pulse comes at the master's readout
-            start (:meth:`~mocaprig.calib.vicon_calibration_options.D415PulseTiming.pulse_lag_ns`).
+        expected_delays_ns: Per camera its frame stamp minus the master's of the same pulse
+            that the D415 pulse convention predicts (ns; missing: 0): for a slave the trigger
+            delay, half the exposure difference and, when the pulse comes at the master's
+            readout start, the master's exposure
+            (:meth:`~mocaprig.calib.vicon_calibration_options.D415PulseTiming.slave_delay_ns`).
             Each camera's constant is bounded and shrunk about it (relative to the pivot's)
             instead of about 0.
 
@@ -209,30 +211,66 @@ def pooled_clocks(
             n, pivot, tie.counter_shift, tie.pairs, tie.rms_ns / 1e3, tie.s * 1e6,
         )  # fmt: skip
         rel[n] = tie
-    if ties_out is not None and len(rel) >= 2:
-        ties_out.update(rel)
     if len(rel) < 2:
         return out, notes
     expected = expected_delays_ns or {}
     centres = [float(expected.get(n, 0.0)) - float(expected.get(pivot, 0.0)) for n in rel]
-    t_all, d_all, s_all, cam_all = [], [], [], []
-    for c, (n, tie) in enumerate(rel.items()):
-        t_w, d_w, s_w = fits[n]
-        tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
-        t_all.append(tp_w)
-        d_all.append(t_w + d_w - tp_w - centres[c] if centres[c] else t_w + d_w - tp_w)
-        s_all.append(s_w)
-        cam_all.append(np.full(len(t_w), c))
-    pooled, delays, delay_sig = _shared_line_fit(
-        pivot,
-        np.concatenate(t_all),
-        np.concatenate(d_all),
-        np.concatenate(s_all),
-        np.concatenate(cam_all),
-        len(rel),
-    )
-    if any(centres):
-        delays = [d + e for d, e in zip(delays, centres, strict=True)]
+
+    def fit_pool() -> tuple[ClockMapping, list[float], list[float]]:
+        t_all, d_all, s_all, cam_all = [], [], [], []
+        for c, (n, tie) in enumerate(rel.items()):
+            t_w, d_w, s_w = fits[n]
+            tp_w = t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)
+            t_all.append(tp_w)
+            d_all.append(t_w + d_w - tp_w - centres[c])
+            s_all.append(s_w)
+            cam_all.append(np.full(len(t_w), c))
+        line, delays, sig = _shared_line_fit(
+            pivot,
+            np.concatenate(t_all),
+            np.concatenate(d_all),
+            np.concatenate(s_all),
+            np.concatenate(cam_all),
+            len(rel),
+        )
+        return line, [d + e for d, e in zip(delays, centres, strict=True)], sig
+
+    pooled, delays, delay_sig = fit_pool()
+    if score is not None:
+        # The shifts were scored through the pivot's own line, which can be frames off (world
+        # 1016 without the sync channel: two slaves tied 1 and 2 periods out). The pooled line
+        # outvotes a poor pivot: each shift is scored again through it, and the pool refitted
+        # when one moves.
+        moved = []
+        for c, (n, tie) in enumerate(list(rel.items())):
+            if n == pivot:
+                continue
+            t_c, n_c = frames[n]
+            best_cost, best_tie = math.inf, tie
+            for shift in range(tie.counter_shift - 2, tie.counter_shift + 3):
+                cand = (
+                    tie
+                    if shift == tie.counter_shift
+                    else tie_by_counters(t_c, n_c, t_p, n_p, shift)
+                )
+                if cand is None:
+                    continue
+                m = through_tie(n, cand, pooled, delay_ns=delays[c], method="candidate")
+                cost = score(n, m)
+                if cost < best_cost:
+                    best_cost, best_tie = cost, cand
+            if best_tie is not tie:
+                moved.append(f"{n} {best_tie.counter_shift - tie.counter_shift:+d}")
+                rel[n] = best_tie
+        if moved:
+            _log.info("counter shifts moved through the pooled clock: %s", ", ".join(moved))
+            notes.append(
+                "clock: frame tie shifts corrected through the pooled clock (periods): "
+                + ", ".join(moved)
+            )
+            pooled, delays, delay_sig = fit_pool()
+    if ties_out is not None:
+        ties_out.update(rel)
     method = f"reprojection, pooled over {len(rel)} synchronised cameras"
     for c, (n, tie) in enumerate(rel.items()):
         m = through_tie(n, tie, pooled, delay_ns=delays[c], method=method)
@@ -253,9 +291,11 @@ _MIN_DELAY_STRETCHES: Final = 3
 #: Largest per-camera constant (trigger delay) of the pooled clock, and the prior it is shrunk
 #: with (ns), about the delay the pulse convention predicts beyond the trigger delay
 #: (``expected_delays_ns`` of :func:`pooled_clocks`). A D415 slave exposes a fixed delay after
-#: the pulse (0.1 ms or 0.77 ms in the published conventions).
+#: the pulse (0.1 ms or 0.77 ms in the published conventions, each within ±0.1 ms:
+#: docs/d415-timing.md), so the data move a camera's constant away from the convention's only
+#: as far as they are sure.
 _MAX_DELAY_NS: Final = 1_000_000.0
-_DELAY_PRIOR_NS: Final = 300_000.0
+_DELAY_PRIOR_NS: Final = 100_000.0
 
 
 def _shared_line_fit(
@@ -263,8 +303,9 @@ def _shared_line_fit(
 ) -> tuple[ClockMapping, list[float], list[float]]:
     """Robust weighted line ``delta = offset + drift·(t − anchor)`` (ns; ``t`` on the pivot's
     clock) through every camera's stretches, with the weighting and rejection of
-    :func:`line_clock`, then per camera the median of its inlier residuals (its constant
-    delay, with ≥ :data:`_MIN_DELAY_STRETCHES` inliers).
+    :func:`line_clock`, then per camera the weighted mean of its inlier residuals shrunk
+    towards 0 with :data:`_DELAY_PRIOR_NS` (its constant delay, with ≥
+    :data:`_MIN_DELAY_STRETCHES` inliers).
 
     Returns ``(the pivot's mapping, delay ns per camera, delay σ ns per camera)``.
     """
@@ -281,12 +322,15 @@ def _shared_line_fit(
     inlier = (np.abs(z) <= STRETCH_REJECT_SIGMA * scale) & (np.abs(res) <= _MAX_DELAY_NS)
     delays, sig = [], []
     for c in range(n_cams):
-        r = res[inlier & (cam == c)]
+        sel = inlier & (cam == c)
+        r, wc = res[sel], w[sel]
         if len(r) >= _MIN_DELAY_STRETCHES:
-            med = float(np.median(r))
-            se = 1.2533 * 1.4826 * float(np.median(np.abs(r - med))) / math.sqrt(len(r))
+            # Weighted as in the line: a stretch's σ is honest about its markers' speed.
+            mean = float((wc * r).sum() / wc.sum())
+            chi2 = float((wc * (r - mean) ** 2).sum()) / (len(r) - 1)
+            se = math.sqrt(max(chi2, 1.0) / float(wc.sum()))
             k = _DELAY_PRIOR_NS**2 / (_DELAY_PRIOR_NS**2 + se**2)
-            delays.append(k * med)
+            delays.append(k * mean)
             sig.append(math.sqrt(k) * se)
         else:
             delays.append(0.0)

@@ -31,6 +31,7 @@ from mocaprig.calib.vicon_calibration_frames import CalibCamera
 from mocaprig.errors import CalibrationError
 
 __all__ = [
+    "STRETCH_BIAS_PX",
     "STRETCH_REJECT_SIGMA",
     "STRETCH_SIGMA_FLOOR_NS",
     "ViconInterp",
@@ -48,6 +49,13 @@ I64 = npt.NDArray[np.int64]
 
 #: Length of the stretches of frames that each give one clock offset (ns).
 _CHUNK_NS: Final = 500_000_000
+#: Half the interval over which a stretch's image speed is measured (ns).
+_SPEED_STEP_NS: Final = 5_000_000
+#: Systematic image bias (px) of a camera's blobs against its projected Vicon markers, common
+#: to a stretch's frames: it limits a stretch's offset to ± bias / image speed. Measured on
+#: the random worlds (world 1004: stretch errors × image speed 0.1–0.2 px, up to 4 ms on
+#: stretches of standing still, whose own fit claimed 0.4–0.9 ms).
+STRETCH_BIAS_PX: Final = 0.2
 
 
 class ViconInterp:
@@ -153,7 +161,8 @@ def _fit_offset(
     gate_px: float = 3.0,
 ) -> tuple[float, float, int]:
     """Continuous device → Vicon offset over frames: matched blobs, soft-L1 least squares over
-    the offset (ms). Returns (offset ns, 1σ ns, pairs); σ is inf without motion."""
+    the offset (ms). Returns (offset ns, 1σ ns, pairs); σ combines the fit's own with
+    :data:`STRETCH_BIAS_PX` over the markers' image speed, and is inf without motion."""
     from scipy.optimize import least_squares
 
     from mocaprig.calib.registration import match_markers
@@ -172,7 +181,21 @@ def _fit_offset(
         fk = np.array([r[0] for r in rows])
         bi = np.array([r[1] for r in rows])
         mj = np.array([r[2] for r in rows])
+        # A marker with a Vicon gap within the fit's reach would jump to a penalty as the
+        # offset moves (a step the finite differences read as a huge slope): left out.
+        ends = [
+            vicon.at(t_dev[fk] + delta + s * _SPEED_STEP_NS)[np.arange(len(fk)), mj]
+            for s in (-1.0, 1.0)
+        ]
+        whole = np.isfinite(ends[0]).all(axis=1) & np.isfinite(ends[1]).all(axis=1)
+        if int(whole.sum()) < 6:
+            return delta, math.inf, int(whole.sum())
+        fk, bi, mj = fk[whole], bi[whole], mj[whole]
         obs = np.stack([frames[k].uv_px[b] for k, b in zip(fk, bi, strict=True)])
+        # The markers' image speed (px/ms, RMS per coordinate) over the fit's reach.
+        uv_a, _ = project_points(ends[0][whole], T, cam.K, cam.dist)
+        uv_b, _ = project_points(ends[1][whole], T, cam.K, cam.dist)
+        speed = float(np.sqrt(np.mean((uv_b - uv_a) ** 2))) / (2e-6 * _SPEED_STEP_NS)
 
         base = delta
 
@@ -190,7 +213,12 @@ def _fit_offset(
         n_pairs = len(rows)
         jtj = float(sol.jac[:, 0] @ sol.jac[:, 0])
         s2 = float(np.mean(sol.fun**2))
-        sigma = math.sqrt(s2 / jtj) * 1e6 if jtj > 0 else math.inf
+        stat = math.sqrt(s2 / jtj) * 1e6 if jtj > 0 else math.inf
+        # A bias of the blobs against the projected markers (the pose's error, a marker half
+        # hidden) is the same in every frame of the stretch: it does not average down, and
+        # it reads as a time offset of bias / image speed.
+        bias = STRETCH_BIAS_PX / speed * 1e6 if speed > 0 else math.inf
+        sigma = math.hypot(stat, bias)
     return delta, sigma, n_pairs
 
 

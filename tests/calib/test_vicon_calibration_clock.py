@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -22,9 +23,14 @@ ToVicon = Callable[[npt.ArrayLike], npt.NDArray[np.float64]]
 
 
 def _rig(
-    seed: int, *, garbage_cam: int | None = None, free_cam: int | None = None
+    seed: int,
+    *,
+    garbage_cam: int | None = None,
+    free_cam: int | None = None,
+    slave_delay_ns: int = 100_000,
 ) -> tuple[Frames, Fits, dict[str, ToVicon]]:
-    """Four cameras on one pulse train (30 s); returns frames, stretch fits, truth maps."""
+    """Four cameras on one pulse train (30 s), d415/0 the master; returns frames, stretch
+    fits, truth maps."""
     rng = np.random.default_rng(seed)
     n = 900
     t = np.arange(n) * PERIOD_NS + 12_345_678  # session ns of the master's exposures
@@ -35,7 +41,7 @@ def _rig(
         name = f"d415/{c}"
         drift = rng.uniform(-40e-6, 40e-6)
         offset = int(rng.integers(10**11, 4 * 10**12))
-        delay = 0 if c == 0 else 100_000  # a slave exposes 100 µs after the pulse
+        delay = 0 if c == 0 else slave_delay_ns  # a slave exposes after the master
         tc = t + delay
         if c == free_cam:  # its trigger is cut after 10 s: it free-runs on its own period
             cut = 300
@@ -113,6 +119,30 @@ def test_pooled_clock_drift_beats_the_single_camera_lines() -> None:
     assert np.mean(pooled) < 0.7 * np.mean(single)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_slaves_keep_the_conventions_delay_that_their_stretches_cannot_resolve(seed: int) -> None:
+    # Pulse at the master's readout start: a slave's stamp comes an exposure (8.5 ms) and its
+    # trigger delay (here 820 µs, the convention's 770 µs + 50 µs) after the master's.
+    frames, fits, truth = _rig(seed, slave_delay_ns=8_500_000 + 820_000)
+
+    def worst_us(expected: dict[str, float]) -> float:
+        maps, _ = _pooled_clocks(
+            frames, fits, _own(fits), _score(truth), expected_delays_ns=expected
+        )
+        errs = []
+        for name, m in maps.items():
+            d = frames[name][0]
+            errs.append(float(np.abs(m.to_reference_ns(d) - truth[name](d)).max()) / 1e3)
+        return max(errs)
+
+    slaves = [f"d415/{c}" for c in (1, 2, 3)]
+    convention = worst_us(dict.fromkeys(slaves, 8_500_000.0 + 770_000.0))
+    assert convention < 300.0
+    # Expecting the exposure alone leaves the 0.77 ms trigger delay to the stretches, whose
+    # 0.3 ms errors cannot place it as well.
+    assert worst_us(dict.fromkeys(slaves, 8_500_000.0)) > 1.5 * convention
+
+
 def test_a_slave_whose_trigger_is_cut_keeps_its_own_clock_and_is_named() -> None:
     frames, fits, truth = _rig(3, free_cam=1)
     maps, notes = _pooled_clocks(frames, fits, _own(fits), _score(truth))
@@ -146,3 +176,26 @@ def test_tie_by_counters_recovers_the_relative_rate_for_any_period_shift() -> No
     dv_dc = np.diff(truth["d415/1"](span + float(t_c[0])))[0] / 1e10
     dv_dp = np.diff(truth["d415/0"](span + float(t_p[0])))[0] / 1e10
     assert abs(rates.mean() - (dv_dc / dv_dp - 1.0)) < 1e-7  # 0.1 ppm
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_tie_scored_through_a_poor_pivot_line_is_corrected_through_the_pooled_clock(
+    seed: int,
+) -> None:
+    frames, fits, truth = _rig(seed)
+    # The pivot camera has the most stretches (every 15th frame) but its own line is 40 ms
+    # (1.2 frame periods) off, as when its line's fit converged on neighbouring frames:
+    # through it, the other cameras' counter shifts come out a period wrong.
+    own = _own(fits)
+    pivot = min(own, key=lambda n: own[n].drift_sigma_ppm)
+    t_w = frames[pivot][0][::15].astype(np.float64)
+    noise = np.random.default_rng(seed).normal(0, 300_000, len(t_w))
+    fits[pivot] = (t_w, truth[pivot](t_w) - t_w + noise, np.full(len(t_w), 200_000.0))
+    own = _own(fits)
+    pivot = min(own, key=lambda n: own[n].drift_sigma_ppm)
+    own[pivot] = dataclasses.replace(own[pivot], offset_ns=own[pivot].offset_ns + 40_000_000)
+    maps, notes = _pooled_clocks(frames, fits, own, _score(truth))
+    assert any("frame tie shifts corrected through the pooled clock" in n for n in notes)
+    for name, m in maps.items():
+        d = frames[name][0]
+        assert np.abs(m.to_reference_ns(d) - truth[name](d)).max() < 400_000, name
