@@ -162,8 +162,9 @@ def test_stream_reports_a_disconnect_and_fails(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     def unplugging(**kwargs: Any) -> Any:
-        # Real-time pacing: the unplug comes well after the start sequence (~0.3 s).
-        faults = DavisFaults(unplug_at_us=1_000_000)
+        # Real-time pacing: the unplug comes well after the start sequence (~0.3 s idle; over
+        # 1 s on a 2-core machine under load 4, where an unplug at 1 s cut the start instead).
+        faults = DavisFaults(unplug_at_us=4_000_000)
         source = SyntheticDavisSource(seed=5, event_rate_hz=50_000.0)
         return mock_backend(source=source, faults=faults, pacing="realtime")
 
