@@ -57,6 +57,7 @@ examples:
   mocaprig democap train --config lite --out mine.pt --bvh walk.bvh dance.bvh --epochs 40
   mocaprig democap train --config paper --out paper.pt --epochs 60 --device cuda --data-workers 12
   mocaprig democap train --out loao.pt --hold-out-activity dance --epochs 40
+  mocaprig democap train --out lite.pt --resume --epochs 260 --lr 2.5e-4   # fine-tune on the corpus
   mocaprig democap train --out sim-only.pt --no-corpus --epochs 40
 
 --corpus DIR (default: ../shared/data/motion/corpus when present; --no-corpus: none) adds the
@@ -176,6 +177,13 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         "wants several). The batches do not depend on N",
     )
     tr.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time")
+    tr.add_argument(
+        "--lr",
+        type=float,
+        default=None,
+        help="learning rate from this run's first epoch (default: the config's, or the resumed "
+        "run's schedule); with --resume a warm restart, the decay continuing from it",
+    )
     tr.add_argument(
         "--bvh",
         nargs="+",
@@ -397,6 +405,7 @@ def democap_train(args: argparse.Namespace) -> int:
         corpus=corpus,
         corpus_subjects=args.corpus_subjects,
         validation_motions=validation,
+        lr=args.lr,
     )
     bar = ProgressBar("democap train", unit="steps")
     ckpt = train(

@@ -78,6 +78,9 @@ class TrainOptions:
         data_workers: processes simulating the training batches ahead of the network (0: in
             the training process). Each step's batch comes from its own seeded generator, so
             the batches, and on the CPU the trained weights, do not depend on this number.
+        lr: the learning rate from this run's first epoch on (None: the config's for a new run,
+            the stored schedule's for a resumed one). On a resumed run it is a warm restart, e.g.
+            to fine-tune on new motions; the step decay continues from it.
     """
 
     epochs: int
@@ -94,6 +97,7 @@ class TrainOptions:
     validation_motions: tuple[BvhClip, ...] = ()
     device: Device = "auto"
     data_workers: int = 0
+    lr: float | None = None
 
 
 Device = Literal["auto", "cpu", "cuda"]
@@ -224,6 +228,14 @@ def train(
         opt.load_state_dict(ckpt.optimizer_state)
     if ckpt.scheduler_state is not None:
         sched.load_state_dict(ckpt.scheduler_state)
+    if options.lr is not None:
+        if not options.lr > 0.0:
+            msg = f"lr must be > 0, got {options.lr}"
+            raise ValidationError(msg)
+        # StepLR scales the groups' current rate, so the decay carries on from the new one.
+        for group in opt.param_groups:
+            group["lr"] = options.lr
+        _log.info("learning rate set to %.3g from epoch %d", options.lr, ckpt.epoch + 1)
     pool = make_pool(ckpt.seed, "train", takes=options.takes)
     names = [c.name for c in (*options.motions, *options.corpus)]
     if len(set(names)) != len(names):

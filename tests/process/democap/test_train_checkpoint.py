@@ -51,6 +51,20 @@ def test_training_is_deterministic_and_resume_matches(
     assert {"loss", "val_mpjpe_mm", "lr"} <= set(hist[-1])
 
 
+def test_resume_with_a_learning_rate_restarts_the_decay_from_it(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    out = tmp_path / "ft.pt"
+    train(out, TrainOptions(epochs=1, seed=3, takes=2, threads=1), config=tiny_config)
+    with pytest.raises(ValidationError, match="lr must be > 0"):
+        train(out, TrainOptions(epochs=2, seed=3, takes=2, threads=1, lr=0.0), resume=True)
+    ck = train(out, TrainOptions(epochs=2, seed=3, takes=2, threads=1, lr=5e-4), resume=True)
+    decayed = 2 % tiny_config.lr_decay_epochs == 0
+    expected = 5e-4 * (tiny_config.lr_decay if decayed else 1.0)
+    assert ck.history[-1]["lr"] == pytest.approx(expected)
+    assert ck.history[0]["lr"] != pytest.approx(expected)
+
+
 def test_batches_simulated_in_worker_processes_train_the_same_weights(
     tmp_path: Path, tiny_config: DemocapConfig
 ) -> None:
