@@ -110,13 +110,13 @@ from mocaprig.calib.vicon_calibration_sync import (
     sync_clocks,
 )
 from mocaprig.calib.vicon_calibration_video_clock import (
-    STRETCH_SIGMA_FLOOR_NS,
     ViconInterp,
     claps_speed_clock,
     grid_offset,
     line_clock,
     reprojection_cost,
     stretch_offsets,
+    stretch_weights,
 )
 from mocaprig.calib.vicon_records import MarkerTrajectories
 from mocaprig.errors import CalibrationError, RecordingError
@@ -218,17 +218,18 @@ class ViconCalibrationResult:
 _WINDOW_REACH: Final = 0.05
 
 
-def _busiest_window(
-    t_ns: I64, positions_m: F64, centre_ns: int, *, reach_ns: int, half_ns: int
-) -> int:
-    """Centre (Vicon ns) of the window of ±``half_ns`` within ``reach_ns`` of ``centre_ns``
-    where the Vicon markers (positions ``(F, M, 3)`` m at ``t_ns``) move fastest on average.
+def _busiest_windows(
+    t_ns: I64, positions_m: F64, centres_ns: Sequence[int], *, reach_ns: int, half_ns: int
+) -> list[int]:
+    """Per centre in ``centres_ns`` (Vicon ns), the centre of the window of ±``half_ns`` within
+    ``reach_ns`` of it where the Vicon markers (positions ``(F, M, 3)`` m at ``t_ns``) move
+    fastest on average (the centre itself when no window fits).
 
     A stretch's clock offset is only as good as its markers' image speed (a blob bias of a
     fraction of a pixel reads as bias / speed), so the clock's windows go where the actor
     moves, close enough to their nominal place to keep the spread the drift needs."""
     if len(t_ns) < 3:
-        return centre_ns
+        return list(centres_ns)
     dt = np.diff(t_ns).astype(np.float64) * 1e-9
     step = np.linalg.norm(np.diff(positions_m, axis=0), axis=2) / dt[:, None]
     with warnings.catch_warnings():
@@ -239,12 +240,12 @@ def _busiest_window(
     lo = np.searchsorted(mids, mids - half_ns)
     hi = np.searchsorted(mids, mids + half_ns)
     mean = (cum[hi] - cum[lo]) / np.maximum(hi - lo, 1)
-    near = np.abs(mids - centre_ns) <= reach_ns
     inside = (mids - half_ns >= mids[0]) & (mids + half_ns <= mids[-1])
-    ok = near & inside
-    if not ok.any():
-        return centre_ns
-    return int(mids[np.flatnonzero(ok)[np.argmax(mean[ok])]])
+    out = []
+    for centre_ns in centres_ns:
+        ok = inside & (np.abs(mids - centre_ns) <= reach_ns)
+        out.append(int(mids[np.flatnonzero(ok)[np.argmax(mean[ok])]]) if ok.any() else centre_ns)
+    return out
 
 
 def _merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
@@ -276,7 +277,7 @@ def _pool_misfit_ns(
         if name in mappings and len(t_w):
             t = np.round(t_w).astype(np.int64)
             res.append(np.abs(t_w + d_w - mappings[name].to_reference_ns(t)))
-            wts.append(1.0 / (s_w**2 + STRETCH_SIGMA_FLOOR_NS**2))
+            wts.append(stretch_weights(s_w))
     if not res:
         return math.nan
     r, w = np.concatenate(res), np.concatenate(wts)
@@ -556,15 +557,15 @@ def calibrate_vicon(
         v_first = t_vicon[0]
         span_ns = int(t_vicon[-1] - v_first)  # ≈ the session
         windows_v = [(c.t_ns - 800_000_000, c.t_ns + 400_000_000) for c in vicon_claps]
-        for frac in opt.extra_windows:
-            # The nominal window (its slow markers serve the poses) and, near it, where the
-            # markers move fastest (the clock's stretches are only as good as their speed).
-            nominal = int(v_first) + round(frac * span_ns)
-            busiest = _busiest_window(
-                t_vicon, traj.positions_m, nominal,
-                reach_ns=round(_WINDOW_REACH * span_ns), half_ns=300_000_000,
-            )  # fmt: skip
-            for mid in {nominal, busiest}:
+        # The nominal windows (their slow markers serve the poses) and, near each, where the
+        # markers move fastest (the clock's stretches are only as good as their speed).
+        nominal = [int(v_first) + round(frac * span_ns) for frac in opt.extra_windows]
+        busiest = _busiest_windows(
+            t_vicon, traj.positions_m, nominal,
+            reach_ns=round(_WINDOW_REACH * span_ns), half_ns=300_000_000,
+        )  # fmt: skip
+        for pair in zip(nominal, busiest, strict=True):
+            for mid in set(pair):
                 windows_v.append((mid - 300_000_000, mid + 300_000_000))
         frames_all: dict[str, list[MarkerFrame]] = {c.name: list(head[c.name]) for c in cams}
         for lo_v, hi_v in _merge_windows(windows_v):

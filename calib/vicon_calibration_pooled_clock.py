@@ -22,8 +22,8 @@ import numpy.typing as npt
 from mocaprig.calib.calibration import ClockMapping
 from mocaprig.calib.vicon_calibration_video_clock import (
     STRETCH_REJECT_SIGMA,
-    STRETCH_SIGMA_FLOOR_NS,
     line_clock,
+    stretch_weights,
 )
 
 __all__ = ["Tie", "pooled_clocks", "through_tie", "tie_by_counters"]
@@ -182,20 +182,16 @@ def pooled_clocks(
         k = np.clip(np.searchsorted(r_p[order], r_c), 0, len(r_p) - 1)
         shifts, counts = np.unique(n_c - n_p[order][k], return_counts=True)
         guess = int(shifts[np.argmax(counts)]) if len(shifts) else 0
-        best: tuple[float, Tie] | None = None
-        for shift in range(guess - 2, guess + 3):
-            tie = tie_by_counters(t_c, n_c, t_p, n_p, shift)
-            if tie is None:
-                continue
+
+        def on_pivot_line(tie: Tie, n: str = n) -> float:
             if score is not None:
-                cost = score(n, through_tie(n, tie, line_p, method="candidate"))
-            else:
-                t_w, d_w, _ = fits[n]
-                tp_w = (t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)).round()
-                on_pivot = (t_w + d_w - tp_w) - (line_p.to_reference_ns(tp_w) - tp_w)
-                cost = float(np.median(np.abs(on_pivot)))
-            if best is None or cost < best[0]:
-                best = (cost, tie)
+                return score(n, through_tie(n, tie, line_p, method="candidate"))
+            t_w, d_w, _ = fits[n]
+            tp_w = (t_w + tie.a_ns + tie.s * (t_w - tie.centre_ns)).round()
+            on_pivot = (t_w + d_w - tp_w) - (line_p.to_reference_ns(tp_w) - tp_w)
+            return float(np.median(np.abs(on_pivot)))
+
+        best = _best_tie(guess, (t_c, n_c), (t_p, n_p), on_pivot_line)
         if best is None:
             notes.append(
                 f"{n}: clock fitted on its own: its frames do not pair with {pivot}'s (no frame "
@@ -204,7 +200,7 @@ def pooled_clocks(
             )
             _log.warning("%s", notes[-1])
             continue
-        tie = best[1]
+        tie = best
         _log.info(
             "%s: synchronised with %s (counter shift %d, %d frame pairs, %.1f µs RMS, relative "
             "rate %+.3f ppm)",
@@ -245,21 +241,13 @@ def pooled_clocks(
         for c, (n, tie) in enumerate(list(rel.items())):
             if n == pivot:
                 continue
-            t_c, n_c = frames[n]
-            best_cost, best_tie = math.inf, tie
-            for shift in range(tie.counter_shift - 2, tie.counter_shift + 3):
-                cand = (
-                    tie
-                    if shift == tie.counter_shift
-                    else tie_by_counters(t_c, n_c, t_p, n_p, shift)
-                )
-                if cand is None:
-                    continue
+
+            def on_pooled_line(cand: Tie, n: str = n, c: int = c) -> float:
                 m = through_tie(n, cand, pooled, delay_ns=delays[c], method="candidate")
-                cost = score(n, m)
-                if cost < best_cost:
-                    best_cost, best_tie = cost, cand
-            if best_tie is not tie:
+                return score(n, m)
+
+            best_tie = _best_tie(tie.counter_shift, frames[n], (t_p, n_p), on_pooled_line, keep=tie)
+            if best_tie is not tie and best_tie is not None:
                 moved.append(f"{n} {best_tie.counter_shift - tie.counter_shift:+d}")
                 rel[n] = best_tie
         if moved:
@@ -283,6 +271,33 @@ def pooled_clocks(
         "frame times, plus its own constant delay"
     )
     return out, notes
+
+
+def _best_tie(
+    centre: int,
+    camera: tuple[I64, I64],
+    pivot: tuple[I64, I64],
+    cost: Callable[[Tie], float],
+    *,
+    keep: Tie | None = None,
+) -> Tie | None:
+    """The lowest-cost tie (:func:`tie_by_counters`) of a camera's ``(frame time, counter)`` to
+    the pivot's over the counter shifts ``centre - 2 … centre + 2``. ``keep``, the tie in hand
+    at its own shift, stays unless another costs less; without it the first tie stands until
+    one costs less. None when no shift gives a tie."""
+    best, best_cost = keep, math.inf
+    for shift in range(centre - 2, centre + 3):
+        cand = (
+            keep
+            if keep is not None and shift == keep.counter_shift
+            else tie_by_counters(*camera, *pivot, shift)
+        )
+        if cand is None:
+            continue
+        c = cost(cand)
+        if best is None or c < best_cost:
+            best, best_cost = cand, c
+    return best
 
 
 #: Fewest inlier stretches for a camera's own constant delay in the pooled clock; with fewer
@@ -311,7 +326,7 @@ def _shared_line_fit(
     """
     ok = np.isfinite(sigma_ns) & np.isfinite(delta_ns) & np.isfinite(t_ns)
     t_ns, delta_ns, sigma_ns, cam = t_ns[ok], delta_ns[ok], sigma_ns[ok], cam[ok]
-    w = 1.0 / (sigma_ns**2 + STRETCH_SIGMA_FLOOR_NS**2)
+    w = stretch_weights(sigma_ns)
     pooled = line_clock(pivot, t_ns, delta_ns, sigma_ns)
     res = delta_ns - (pooled.to_reference_ns(t_ns.round()) - t_ns.round())
     z = res * np.sqrt(w)

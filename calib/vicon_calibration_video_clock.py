@@ -40,6 +40,7 @@ __all__ = [
     "line_clock",
     "reprojection_cost",
     "stretch_offsets",
+    "stretch_weights",
 ]
 
 _log = logging.getLogger(__name__)
@@ -277,6 +278,13 @@ STRETCH_SIGMA_FLOOR_NS: Final = 250_000.0
 #: Stretches farther than this many robust σ from the line are rejected, then it is refitted.
 STRETCH_REJECT_SIGMA: Final = 3.0
 
+
+def stretch_weights(sigma_ns: F64) -> F64:
+    """Weights ``1/(σ² + floor²)`` of clock stretches with offset σ ``sigma_ns`` (ns), the floor
+    :data:`STRETCH_SIGMA_FLOOR_NS`: every fit of stretch offsets weighs them this way."""
+    return np.asarray(1.0 / (np.square(sigma_ns) + STRETCH_SIGMA_FLOOR_NS**2), dtype=np.float64)
+
+
 #: A video clock line steeper than this (ppm) is not believed (D415 and Vicon crystals are
 #: within ±50 ppm): :func:`line_clock` keeps the offset alone.
 VIDEO_DRIFT_LIMIT_PPM: Final = 1000.0
@@ -297,7 +305,7 @@ def line_clock(device: str, t_dev: F64, delta_ns: F64, sigma_ns: F64) -> ClockMa
     if len(t_dev) == 0:
         msg = f"{device}: no stretch gave a finite clock offset"
         raise CalibrationError(msg)
-    w = 1.0 / (sigma_ns**2 + STRETCH_SIGMA_FLOOR_NS**2)
+    w = stretch_weights(sigma_ns)
     anchor = round(float((w * t_dev).sum() / w.sum()))
     x = (t_dev - anchor) * 1e-9
     line = bool(len(t_dev) >= 2 and np.ptp(t_dev) >= 5e9)
