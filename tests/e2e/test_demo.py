@@ -56,8 +56,8 @@ def test_demo_command_reports_figures_against_truth(
     assert cal["max_d415_clock_offset_error_ms"] < 1.0
     assert cal["davis_vs_d415_clock_error_us"] < 50.0
     assert report["stages"]["democap"].startswith("done")
-    # In-distribution simulation, the committed checkpoint (measured 28.7 mm, 90 % PCK@50 on
-    # these 60 frames; 27.1 mm / 91 % in `make demo`).
+    # In-distribution simulation, the committed checkpoint (the 189-epoch one measured 28.7 mm,
+    # 90 % PCK@50 on these 60 frames; 27.1 mm / 91 % in `make demo`; the 270-epoch one passes).
     assert 0 < figures["democap"]["mpjpe_mm"] < 40
     assert figures["democap"]["pck50"] > 0.8
     # The replay of the demo's own recording with its calibration (every 3rd instant).
@@ -68,8 +68,8 @@ def test_demo_command_reports_figures_against_truth(
     assert rp["instants"] == -(-rp["instants_total"] // 3)
     assert rp["instants_by_camera_count"] == {"2": rp["instants"]}
     # Two D415s, both in front of the actor: a rig outside the network's training (4 around,
-    # 3, or an opposing pair); measured 79.4 mm on these 40 instants (2026-11-27; 161 mm with
-    # an earlier checkpoint). `make demo`'s 30 s take: 21.6 mm.
+    # 3, or an opposing pair); measured 79.4 mm on these 40 instants with the 189-epoch
+    # checkpoint (161 mm with an earlier one). `make demo`'s 30 s take: 21.6 mm.
     assert 0 < rp["mpjpe_mm"] < 120
     assert Path(rp["results_mcap"]).parent == out
     assert all(Path(rp[k]).is_file() for k in ("results_mcap", "results_c3d", "results_csv"))
@@ -78,7 +78,7 @@ def test_demo_command_reports_figures_against_truth(
     lv = figures["democap_live"]
     assert lv["instants"] >= 25  # 1 s at 30 Hz
     assert lv["drops"] == 0
-    # The same 2-camera rig live, the 2-turn live ensemble on 1 s (measured 121.8 mm).
+    # The same 2-camera rig live, the 2-turn live ensemble on 1 s (121.8 mm, 189-epoch one).
     assert 0 < lv["mpjpe_mm"] < 250
     assert Path(lv["out"]).is_file()
     # `mocaprig process` on the session (DeMoCap, in-process); a second run keeps its outputs.
