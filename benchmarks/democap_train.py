@@ -36,10 +36,10 @@ from typing import Any
 import torch
 
 from mocaprig.process.democap.config import config_by_name
-from mocaprig.process.democap.train import TrainOptions, train
+from mocaprig.process.democap.train import Device, TrainOptions, train
 
 
-def _run(config: str, device: str, workers: int, args: argparse.Namespace) -> dict[str, Any]:
+def _run(config: str, device: Device, workers: int, args: argparse.Namespace) -> dict[str, Any]:
     cfg = config_by_name(config)
     stamps: list[float] = []
 
@@ -52,7 +52,7 @@ def _run(config: str, device: str, workers: int, args: argparse.Namespace) -> di
         takes=args.takes,
         samples_per_epoch=args.steps * cfg.batch_size,
         threads=args.threads,
-        device=device,  # type: ignore[arg-type]
+        device=device,
         data_workers=workers,
     )
     cpu0 = time.process_time()
@@ -96,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     args = ap.parse_args(argv)
     cuda = torch.cuda.is_available()
-    devices = args.devices or (["cpu", "cuda"] if cuda else ["cpu"])
+    devices: list[Device] = args.devices or (["cpu", "cuda"] if cuda else ["cpu"])
     if "cuda" in devices and not cuda:
         msg = "--devices cuda: torch sees no CUDA GPU on this machine"
         raise SystemExit(msg)

@@ -200,6 +200,9 @@ def train(
     if options.epochs < 1:
         msg = f"epochs must be >= 1, got {options.epochs}"
         raise ValidationError(msg)
+    if options.lr is not None and not options.lr > 0.0:
+        msg = f"lr must be > 0, got {options.lr}"
+        raise ValidationError(msg)
     out = Path(out)
     if resume:
         ckpt = load_checkpoint(out)
@@ -229,9 +232,6 @@ def train(
     if ckpt.scheduler_state is not None:
         sched.load_state_dict(ckpt.scheduler_state)
     if options.lr is not None:
-        if not options.lr > 0.0:
-            msg = f"lr must be > 0, got {options.lr}"
-            raise ValidationError(msg)
         # StepLR scales the groups' current rate, so the decay carries on from the new one.
         for group in opt.param_groups:
             group["lr"] = options.lr
