@@ -6,6 +6,7 @@ STAMP  := $(VENV)/.mocaprig-installed
 # The CPU build of torch; a bare `torch` requirement would pull a multi-GB CUDA build.
 TORCH_SPEC ?= torch==2.13.0
 DEMO_OUT ?= demo-out
+TEST_WORKERS ?= 2
 
 .PHONY: install demo test lint typecheck unit bench clean firmware
 
@@ -30,8 +31,12 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(PY) -m mypy
 
+# The suite runs on TEST_WORKERS processes (pytest-xdist; a test file stays on one, so its
+# module fixtures are built once), each with one BLAS/OpenMP/torch thread so that the workers
+# do not spin against each other; the slowest tests are listed at the end.
 unit: $(STAMP)
-	$(PY) -m pytest
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 test: lint typecheck unit
 

@@ -415,13 +415,20 @@ def davis_stream(
                     if pkt is not None:
                         _count(totals, pkt)
                     elif not cam.running:
-                        break  # the stream ended by itself
+                        # The reader ended (an unplug, a USB error): the decoder may still
+                        # hold packets; the reader's error comes once they are taken.
+                        for pkt in cam.packets(timeout_s=5.0):
+                            _count(totals, pkt)
+                        break
                     status(totals, cam, now - t0)
             except DeviceError as exc:
                 error = exc
             device_dropped: dict[str, int] = {}
             if error is None:
-                device_dropped = cam.device_drop_counts()
+                try:
+                    device_dropped = cam.device_drop_counts()
+                except DeviceError as exc:  # unplugged after the last packet
+                    error = exc
             cam.stop()
             with contextlib.suppress(DeviceError):  # the error, if any, is already in hand
                 while (pkt := cam.get_packet(0)) is not None:

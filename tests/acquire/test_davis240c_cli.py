@@ -12,6 +12,7 @@ import mocaprig.acquire.davis240c
 from mocaprig.acquire.commands import DEVICE_PROBERS, DeviceListing
 from mocaprig.cli import main
 from mocaprig.drivers_mock.davis240c_usb import DavisFaults, SyntheticDavisSource, mock_backend
+from mocaprig.errors import DeviceDisconnectedError
 
 
 @pytest.fixture(autouse=True)
@@ -177,5 +178,26 @@ def test_stream_reports_a_disconnect_and_fails(
     out = json.loads(captured.out)
     assert "disconnected" in out["error"]
     assert out["events"] > 0
+    assert "ERROR: DAVIS240C" in captured.err
+    assert raw.stat().st_size == out["stats"]["decode"]["bytes_in"]
+
+
+def test_stream_unplugged_after_its_last_packet_still_reports_json(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The camera goes away between the last packet and the drop-counter read that ends the run
+    # (a race a loaded machine hits): the summary is still written, with the error in it.
+    def gone(self: Any) -> dict[str, int]:
+        msg = "DAVIS240C 00000042: disconnected while reading register (0, 83)"
+        raise DeviceDisconnectedError(msg)
+
+    monkeypatch.setattr(mocaprig.acquire.davis240c.Davis240C, "device_drop_counts", gone)
+    raw = tmp_path / "cap.bin"
+    argv = ["davis", "stream", "--mock", "--seconds", "0.5", "--raw-out", str(raw), "--json"]
+    assert main(argv) == 1
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    assert "disconnected while reading register" in out["error"]
+    assert out["device_dropped"] == {}
     assert "ERROR: DAVIS240C" in captured.err
     assert raw.stat().st_size == out["stats"]["decode"]["bytes_in"]

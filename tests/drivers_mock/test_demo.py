@@ -1,4 +1,5 @@
-"""The demo's DeMoCap skeleton figure (the demo itself runs in ``tests/e2e/test_demo.py``)."""
+"""The demo's DeMoCap skeleton figure and report lines (the demo itself runs in
+``tests/e2e/test_demo.py``)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mocaprig.drivers_mock.commands import _unseen_real_line
 from mocaprig.drivers_mock.demo import SKELETON_FIGURE, _skeleton_figure
 from mocaprig.process.body import DEMOCAP_JOINTS
 
@@ -21,3 +23,36 @@ def test_skeleton_figure_is_written_for_a_replay_with_a_missing_joint(tmp_path: 
     assert path == tmp_path / SKELETON_FIGURE
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert path.stat().st_size > 20_000
+
+
+def _unseen(inside_mpjpe_mm: float | None) -> dict[str, object]:
+    return {
+        "protocol": "unseen-real",
+        "config": "lite",
+        "clips": ["cmu_02_01", "cmu_07_12"],
+        "num_cameras": 4,
+        "rotations": 3,
+        "frames": 16,
+        "mpjpe_mm": 51.25,
+        "pck50": 0.7,
+        "inside_volume": {
+            "frames": 0 if inside_mpjpe_mm is None else 12,
+            "share": 0.0 if inside_mpjpe_mm is None else 0.75,
+            "mpjpe_mm": inside_mpjpe_mm,
+            "pck50": None if inside_mpjpe_mm is None else 0.8,
+        },
+    }
+
+
+def test_demo_text_names_the_unseen_real_protocol_and_both_frame_sets() -> None:
+    line = _unseen_real_line(_unseen(44.94))
+    assert "[unseen-real]" in line
+    assert "2 real clips of unseen performers" in line
+    assert "inside the view (75 % of frames) MPJPE 44.9 mm, PCK@50 80.0 %" in line
+    assert "all frames 51.2 mm, 70.0 %" in line
+    assert "no frame inside the view" in _unseen_real_line(_unseen(None))
+
+
+def test_demo_text_says_why_the_unseen_real_figure_is_missing() -> None:
+    assert "no motion corpus" in _unseen_real_line({})
+    assert "clip cmu_02_01 is missing" in _unseen_real_line({"error": "clip cmu_02_01 is missing"})
