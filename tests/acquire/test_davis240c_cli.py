@@ -163,11 +163,23 @@ def test_stream_reports_a_disconnect_and_fails(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     def unplugging(**kwargs: Any) -> Any:
-        # Real-time pacing: the unplug comes well after the start sequence (~0.3 s idle; over
-        # 1 s on a 2-core machine under load 4, where an unplug at 1 s cut the start instead).
-        faults = DavisFaults(unplug_at_us=4_000_000)
+        # The camera is pulled once the host has read 1 MB (well after the start sequence):
+        # an unplug at a fixed device time cut the start instead on a loaded machine, where
+        # real-time pacing had delivered next to nothing by then.
         source = SyntheticDavisSource(seed=5, event_rate_hz=50_000.0)
-        return mock_backend(source=source, faults=faults, pacing="realtime")
+        backend = mock_backend(source=source, pacing="realtime")
+        read = backend.bulk_read
+        taken = [0]
+
+        def bulk_read(dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
+            n = read(dev_handle, ep, intf, buff, timeout)
+            taken[0] += n
+            if taken[0] >= 1_000_000 and backend.faults.unplug_at_us is None:
+                backend.faults = DavisFaults(unplug_at_us=backend.uptime_us + 1)
+            return n
+
+        backend.bulk_read = bulk_read  # type: ignore[method-assign]
+        return backend
 
     monkeypatch.setattr(mocaprig.acquire.davis240c, "load_mock_backend", unplugging)
     raw = tmp_path / "cap.bin"
