@@ -58,7 +58,7 @@ def test_demo_command_reports_figures_against_truth(
     assert cal["davis_vs_d415_clock_error_us"] < 50.0
     assert report["stages"]["democap"].startswith("done")
     # In-distribution simulation, the committed checkpoint (the 189-epoch one measured 28.7 mm,
-    # 90 % PCK@50 on these 60 frames; 27.1 mm / 91 % in `make demo`; the 270-epoch one passes).
+    # 90 % PCK@50 on these 60 frames; 27.1 mm / 91 % in `make demo`; the 343-epoch one passes).
     assert 0 < figures["democap"]["mpjpe_mm"] < 40
     assert figures["democap"]["pck50"] > 0.8
     # The headline protocol on the demo's small budget, where the corpus is beside the clone.
