@@ -305,7 +305,7 @@ def _demo(args: argparse.Namespace) -> int:
     lines = [
         f"mocaprig demo: scenario {f['scenario']!r}, seed {f['seed']}, {f['seconds']:g} s",
         "stages:",
-        *(f"  {name:<15} {state}" for name, state in report.stages.items()),
+        *(f"  {name:<20} {state}" for name, state in report.stages.items()),
         "figures:",
         (
             f"  Vicon C3D: {f['body_markers']} body + {f['clapper_markers']} clapperboard markers, "

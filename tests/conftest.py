@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,6 +13,8 @@ from mocaprig.calib.calibration import Calibration
 from mocaprig.drivers_mock.truth import Truth
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: The @mcap/core (TypeScript) reader the compatibility checks run (tests/compat/check.mjs).
+COMPAT = Path(__file__).resolve().parent / "compat"
 
 
 @pytest.fixture
@@ -61,3 +65,29 @@ def calibrated_session(tmp_path_factory: pytest.TempPathFactory) -> CalibratedSe
     cal = calibrate_vicon(session, sim.c3d_path).calibration
     calib = write_calibration(cal, root / "calib.toml")
     return CalibratedSession(root, session, calib, cal, read_truth(sim.out_dir), 5, 4.0)
+
+
+@pytest.fixture(scope="session")
+def mcap_core_reader(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``tests/compat/check.mjs`` with @mcap/core installed (``npm ci`` once, lockfile pinned),
+    or a visible skip without node/npm or offline. The install runs under a lock shared by the
+    pytest-xdist workers, so two of them never write node_modules at once."""
+    from filelock import FileLock
+
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node/npm are not installed: the @mcap/core compatibility check cannot run")
+    # The workers' temporary folders share this parent.
+    lock = tmp_path_factory.getbasetemp().parent / "npm-ci-compat.lock"
+    with FileLock(str(lock)):
+        if not (COMPAT / "node_modules" / "@mcap" / "core").is_dir():
+            res = subprocess.run(
+                [npm, "ci", "--prefix", str(COMPAT), "--no-audit", "--no-fund"],
+                capture_output=True,
+                text=True,
+                timeout=300,
+                check=False,
+            )
+            if res.returncode != 0:
+                pytest.skip(f"npm ci in {COMPAT} failed (offline?): {res.stderr.strip()[-300:]}")
+    return COMPAT / "check.mjs"

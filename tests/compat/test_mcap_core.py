@@ -8,7 +8,6 @@ pinned); the test is skipped, visibly, when node/npm are missing or the install 
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -37,22 +36,9 @@ from mocaprig.acquire.recording_format import (
 COMPAT = Path(__file__).resolve().parent
 
 
-@pytest.fixture(scope="module")
-def node_reader() -> Path:
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.skip("node/npm are not installed: the @mcap/core compatibility check cannot run")
-    if not (COMPAT / "node_modules" / "@mcap" / "core").is_dir():
-        res = subprocess.run(
-            [npm, "ci", "--prefix", str(COMPAT), "--no-audit", "--no-fund"],
-            capture_output=True,
-            text=True,
-            timeout=300,
-            check=False,
-        )
-        if res.returncode != 0:
-            pytest.skip(f"npm ci in {COMPAT} failed (offline?): {res.stderr.strip()[-300:]}")
-    return COMPAT / "check.mjs"
+@pytest.fixture
+def node_reader(mcap_core_reader: Path) -> Path:
+    return mcap_core_reader
 
 
 def _node(script: Path, mode: str, path: Path) -> Any:

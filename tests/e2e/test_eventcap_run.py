@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,6 @@ from mocaprig.cli import main
 from mocaprig.drivers_mock.eventcap_session import read_session_truth, write_session_inputs
 from mocaprig.process.body.kinematics import EVENTCAP_KEYPOINTS
 
-COMPAT = Path(__file__).resolve().parents[1] / "compat"
 BATCHES = 2
 START_S = 1.0
 
@@ -135,16 +133,14 @@ def test_results_bvh_reads_back_at_1000_hz(run: _Run) -> None:
     assert clip.unit_scale == pytest.approx(0.01)
 
 
-def test_results_mcap_reads_with_mcap_core(run: _Run) -> None:
-    if shutil.which("node") is None or not (COMPAT / "node_modules" / "@mcap" / "core").is_dir():
-        pytest.skip("node or tests/compat/node_modules (@mcap/core) is missing: run npm ci there")
+def test_results_mcap_reads_with_mcap_core(run: _Run, mcap_core_reader: Path) -> None:
     res = subprocess.run(
-        ["node", str(COMPAT / "check.mjs"), "indexed", str(run.root / "results.mcap")],
+        ["node", str(mcap_core_reader), "indexed", str(run.root / "results.mcap")],
         capture_output=True,
         text=True,
         timeout=120,
         check=False,
-        cwd=COMPAT,
+        cwd=mcap_core_reader.parent,
     )
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
