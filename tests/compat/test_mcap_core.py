@@ -33,13 +33,6 @@ from mocaprig.acquire.recording_format import (
     TriggerPacket,
 )
 
-COMPAT = Path(__file__).resolve().parent
-
-
-@pytest.fixture
-def node_reader(mcap_core_reader: Path) -> Path:
-    return mcap_core_reader
-
 
 def _node(script: Path, mode: str, path: Path) -> Any:
     res = subprocess.run(
@@ -48,7 +41,7 @@ def _node(script: Path, mode: str, path: Path) -> Any:
         text=True,
         timeout=120,
         check=False,
-        cwd=COMPAT,
+        cwd=script.parent,
     )
     assert res.returncode == 0, res.stderr
     return json.loads(res.stdout)
@@ -112,9 +105,9 @@ def _python_counts(path: Path) -> dict[str, int]:
 
 
 def test_mcap_core_indexed_reader_decodes_every_channel(
-    node_reader: Path, every_channel: Path
+    mcap_core_reader: Path, every_channel: Path
 ) -> None:
-    ts = _node(node_reader, "indexed", every_channel)
+    ts = _node(mcap_core_reader, "indexed", every_channel)
     channels = ts["channels"]
     assert isinstance(channels, dict)
     py = _python_counts(every_channel)
@@ -141,12 +134,12 @@ def test_mcap_core_indexed_reader_decodes_every_channel(
 
 
 def test_mcap_core_stream_reader_reads_a_truncated_file(
-    node_reader: Path, every_channel: Path, tmp_path: Path
+    mcap_core_reader: Path, every_channel: Path, tmp_path: Path
 ) -> None:
     data = every_channel.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * 0.7)])
-    ts = _node(node_reader, "stream", cut)
+    ts = _node(mcap_core_reader, "stream", cut)
     assert ts["done"] is False
     channels = ts["channels"]
     assert isinstance(channels, dict)
