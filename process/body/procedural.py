@@ -39,7 +39,9 @@ Motions (:data:`PROCEDURAL_MOTIONS`):
     spine and the neck anywhere within their limits (pulled toward the rest pose by a random
     factor), and the legs as one of three stances: both feet planted with a symmetric knee
     bend, or one foot planted (bent a little, kept flat) and the other leg free within its
-    limits. It covers poses the scored actions never reach; it is made for single-frame
+    limits; a third of the keys bend over at the hips (the pelvis tilted forward 20-85
+    degrees, the hips flexed by as much so the legs keep their stance, hip flexion at most
+    120 degrees). It covers poses the scored actions never reach; it is made for single-frame
     training data: feet can slide while the stance changes.
 """
 
@@ -53,6 +55,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from mocaprig.errors import ValidationError
 from mocaprig.process.body.kinematics import Kinematics, forward_kinematics
@@ -162,6 +165,7 @@ class _Score:
     support: FloatArray  # (T, 2): weight of the right and left foot as the anchor
     flight_m: FloatArray  # (T,) extra root height in flight
     noise_deg: float = 0.8
+    pitch_deg: FloatArray | None = None  # (T,) pelvis tilted forward about its X axis
 
 
 def _stance_feet(a: FloatArray, knee: FloatArray | float, hip: FloatArray | float) -> None:
@@ -433,8 +437,16 @@ def _free_limb(a: FloatArray, side: str, dofs: tuple[str, ...], rng: np.random.G
         _side(a, side, dof, _free_angle(rng, dof, pull))
 
 
-def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
-    """One random key: angles (27,) degrees and support weights (right, left)."""
+#: Share of ``freestyle`` keys bent forward at the hips, and the pelvis tilt they draw (deg).
+_BEND_SHARE = 0.35
+_BEND_DEG = (20.0, 85.0)
+#: Hip flexion a bent key may reach (deg; the limit is 125): a deeper tilt is cut to it.
+_HIP_FLEXION_MAX_DEG = 120.0
+
+
+def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray, float]:
+    """One random key: angles (27,) degrees, support weights (right, left) and the pelvis's
+    forward tilt (degrees)."""
     a = np.zeros((1, NUM_DOF))
     pull = float(rng.uniform(0.3, 1.0))
     for dof in ("spine_flexion", "spine_lateral_bend", "spine_axial_twist"):
@@ -459,7 +471,13 @@ def _freestyle_key(rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
         _side(a, planted, "hip_abduction", float(rng.uniform(-5.0, 10.0)))
         _free_limb(a, free, _LEG_DOFS, rng)
         support = np.array([1.0, 0.0]) if stance == 1 else np.array([0.0, 1.0])
-    return a[0], support
+    # Bending over to reach the floor tilts the pelvis, not only the spine (whose flexion
+    # stops near 60 degrees): the hips flex by the tilt so the legs keep their stance.
+    pitch = float(rng.uniform(*_BEND_DEG)) if rng.random() < _BEND_SHARE else 0.0
+    hips = [a[0, _DOF[f"{side}_hip_flexion"]] for side in ("left", "right")]
+    pitch = max(0.0, min(pitch, _HIP_FLEXION_MAX_DEG - max(hips)))
+    _both(a, "hip_flexion", pitch)
+    return a[0], support, pitch
 
 
 def _freestyle(take: _Take) -> _Score:
@@ -467,11 +485,13 @@ def _freestyle(take: _Take) -> _Score:
     rng = take.rng
     end = float(take.t[-1])
     times, keys, supports = [0.0], [np.zeros(NUM_DOF)], [np.array([0.5, 0.5])]
+    pitches = [0.0]
     while times[-1] <= end:
         times.append(times[-1] + float(rng.uniform(0.45, 1.2)) / take.tempo)
-        key, support = _freestyle_key(rng)
+        key, support, pitch = _freestyle_key(rng)
         keys.append(take.amp * key)
         supports.append(support)
+        pitches.append(take.amp * pitch)
     k = np.searchsorted(np.asarray(times), take.t, side="right") - 1
     t0 = np.asarray(times)[k]
     t1 = np.asarray(times)[k + 1]
@@ -482,7 +502,9 @@ def _freestyle(take: _Take) -> _Score:
     # foot changes), so the root follows the feet that carry it.
     both = np.maximum(sup_arr[k], sup_arr[k + 1])
     sup[:] = both / both.sum(axis=1, keepdims=True)
-    return _Score(a, sup, fl, noise_deg=1.0)
+    pitch_arr = np.asarray(pitches)
+    pitch = (1.0 - w[:, 0]) * pitch_arr[k] + w[:, 0] * pitch_arr[k + 1]
+    return _Score(a, sup, fl, noise_deg=1.0, pitch_deg=pitch)
 
 
 _GENERATORS: dict[str, Callable[[_Take], _Score]] = {
@@ -513,11 +535,18 @@ def _place_root(
     support: FloatArray,
     flight_m: FloatArray,
     shape: BodyShape,
+    pitch_rad: FloatArray | None = None,
 ) -> FloatArray:
-    """Poses (T, 33) with the root placed so the feet stand on the floor and do not slide."""
+    """Poses (T, 33) with the root placed so the feet stand on the floor and do not slide;
+    ``pitch_rad`` (T,) tilts the pelvis forward (toward +Y, the facing) after the heading."""
     n = angles_rad.shape[0]
     poses = np.zeros((n, POSE_DIM))
-    poses[:, 2] = yaw_rad
+    if pitch_rad is None:
+        poses[:, 2] = yaw_rad
+    else:
+        # Heading about world Z, then the forward tilt about the pelvis's X (-X: top to +Y).
+        tilt = Rotation.from_euler("ZX", np.stack([yaw_rad, -pitch_rad], axis=-1))
+        poses[:, 0:3] = tilt.as_rotvec()
     poses[:, 6:] = angles_rad
     kin = forward_kinematics(poses, shape)
     feet = kin.positions_m[:, [JOINT_INDEX["RightFoot"], JOINT_INDEX["LeftFoot"]], :2]
@@ -578,7 +607,8 @@ def make_motion(
     angles = score.angles_deg + score.noise_deg * noise[:, :NUM_DOF]
     angles = np.clip(np.deg2rad(angles), DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1])
     yaw = np.deg2rad(0.5 * score.noise_deg) * noise[:, NUM_DOF]
-    poses = _place_root(angles, yaw, score.support, score.flight_m, body)
+    pitch = None if score.pitch_deg is None else np.deg2rad(score.pitch_deg)
+    poses = _place_root(angles, yaw, score.support, score.flight_m, body, pitch)
     _log.debug(
         "procedural %s: %d frames, tempo %.3f, amplitude %.3f", name, n, take.tempo, take.amp
     )

@@ -58,7 +58,8 @@ def test_demo_command_reports_figures_against_truth(
     assert cal["davis_vs_d415_clock_error_us"] < 50.0
     assert report["stages"]["democap"].startswith("done")
     # In-distribution simulation, the committed checkpoint (the 189-epoch one measured 28.7 mm,
-    # 90 % PCK@50 on these 60 frames; 27.1 mm / 91 % in `make demo`; the 343-epoch one passes).
+    # 90 % PCK@50 on these 60 frames; 27.1 mm / 91 % in `make demo`; the 377-epoch one
+    # 28.4 mm / 90 %).
     assert 0 < figures["democap"]["mpjpe_mm"] < 40
     assert figures["democap"]["pck50"] > 0.8
     # The headline protocol on the demo's small budget, where the corpus is beside the clone.
@@ -73,7 +74,7 @@ def test_demo_command_reports_figures_against_truth(
         assert ur["trained_clips"] == []
         assert ur["frames"] + ur["skipped_frames"] == 11 * 8
         assert 0.5 < ur["inside_volume"]["share"] < 1.0
-        # The 270-epoch checkpoint: 44.9 mm / 74 % inside the view at seed 0 (the
+        # The 377-epoch checkpoint: 43.1 mm / 77 % inside the view at seed 0 (the
         # simulation-only one measured 64-67 mm on the protocol test's budget).
         assert 0 < ur["inside_volume"]["mpjpe_mm"] < 62
         assert ur["inside_volume"]["pck50"] > 0.62

@@ -145,3 +145,26 @@ def test_freestyle_reaches_poses_beyond_the_scored_actions() -> None:
     assert min(hand_over_head) > 0.0
     assert min(foot_lift) > 0.1
     assert max(crouch) > 0.05
+
+
+def test_freestyle_bends_over_at_the_hips_with_the_feet_under_the_pelvis() -> None:
+    tilts, reach = [], []
+    for seed in range(4):
+        m = make_motion("freestyle", seconds=6.0, rng=np.random.default_rng(seed), rate_hz=RATE)
+        assert within_limits(m.poses).all()
+        kin = forward_kinematics(m.poses, SHAPE)
+        p, j = kin.positions_m, JOINT_INDEX
+        torso = p[:, j["Neck"]] - p[:, j["Hips"]]
+        tilt = np.degrees(np.arccos(torso[:, 2] / np.linalg.norm(torso, axis=1)))
+        bent = tilt > 45.0
+        tilts.append(float(tilt.max()))
+        if bent.any():
+            # forward (+Y, the facing), the pelvis over the feet, and still standing
+            assert np.all(torso[bent, 1] > 0.0)
+            feet_y = p[bent][:, [j["RightFoot"], j["LeftFoot"]], 1].mean(axis=1)
+            assert np.all(np.abs(p[bent, j["Hips"], 1] - feet_y) < 0.35)
+            assert floor_clearance_m(kin, SHAPE)[bent].max() < 1e-6
+            reach.append(float(p[bent, j["Head"], 2].min()))
+    # deep bends (the torso past 60 degrees, the head below 1.2 m) in some takes, not all frames
+    assert max(tilts) > 60.0
+    assert min(reach) < 1.2

@@ -68,9 +68,9 @@ def test_evaluate_reports_all_figures_for_a_tiny_model(
     assert 0.5 < d["markers_seen"] <= 1.0
 
 
-# The committed checkpoint (343 epochs on CPU) measured, 4 cameras, seeds 0-2 with 240 frames
-# each (docs/democap.md): single shot 35.3-38.9 mm MPJPE, PCK@50 0.78-0.82; the default 3-turn
-# rotation ensemble 26.1-27.9 mm, 0.91-0.92. The 270-epoch one on these small sets (48
+# The committed checkpoint (377 epochs on CPU) measured, 4 cameras, seeds 0-2 with 240 frames
+# each (docs/democap.md): single shot 35.9-39.7 mm MPJPE, PCK@50 0.77-0.81; the default 3-turn
+# rotation ensemble 26.4-28.5 mm, 0.90-0.91. The 270-epoch one on these small sets (48
 # frames): single shot 35.9 / 35.9 / 45.6 mm, 0.82 / 0.81 / 0.76; ensemble 25.5 / 24.4 / 29.7
 # mm, 0.92 / 0.93 / 0.90. The bounds leave 16-21 % headroom over the worst of those, so a
 # worse checkpoint or a broken pipeline fails.
