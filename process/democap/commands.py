@@ -89,9 +89,11 @@ _EVAL_EPILOG = """\
   all                      all four
 --motion FILE.bvh (a BVH retargeted onto new subjects) and --freestyle (held-out random key
 poses) replace the protocol. Every figure is given over all frames and over the frames with
-the actor inside the volume the cameras see (with that share); frames whose cloud has fewer
-than 2 points are skipped and counted. --frames is per take or clip (default per protocol:
-40, 20, 10, 8), --subjects the bodies per clip (corpus) or rounds of the actions.
+the actor inside the volume the cameras see (with that share), and by the true torso's tilt
+from the vertical (0-20, 20-40, 40-60 and past 60 degrees: a body bent over is the hard case);
+frames whose cloud has fewer than 2 points are skipped and counted. --frames is per take or
+clip (default per protocol: 40, 20, 10, 8), --subjects the bodies per clip (corpus) or rounds
+of the actions.
 MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm. Any variant's
 checkpoint can be evaluated; a pose baseline estimates no markers, so its MPMPE, RMSPMPE and
 MPJAE are reported as n/a (null with --json).
@@ -634,6 +636,12 @@ def _result_line(prefix: str, r: dict[str, Any]) -> str:
     lines = [first, f"  holds out: {r['holds_out']}"]
     acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
     lines.append(f"  per action or clip (mm): {acts}")
+    tilts = ins.get("per_torso_tilt") or {}
+    if tilts:
+        bins = ", ".join(
+            f"{k} deg {_fmt(v['mpjpe_mm'], ' mm')} ({v['frames']})" for k, v in tilts.items()
+        )
+        lines.append(f"  inside, by the torso's tilt from the vertical (frames): {bins}")
     return "\n".join(lines)
 
 

@@ -36,6 +36,7 @@ are None (JSON null).
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -72,6 +73,7 @@ __all__ = [
     "PERTURBATION_SCALES",
     "PROTOCOLS",
     "SEGMENTS",
+    "TILT_BINS_DEG",
     "EvalReport",
     "Protocol",
     "ProtocolResult",
@@ -81,6 +83,7 @@ __all__ = [
     "perturbed",
     "run_protocol",
     "segment_quaternions",
+    "torso_tilt_deg",
     "unseen_real",
 ]
 
@@ -98,6 +101,9 @@ PERTURBATION_SCALES: tuple[float, ...] = (0.5, 1.5)
 EVAL_JOINTS: tuple[int, ...] = tuple(
     i for i, n in enumerate(DEMOCAP_JOINTS) if n not in ("RightToeBase", "LeftToeBase")
 )
+
+#: Edges (degrees) of the torso-tilt bins the figures are also given over (:func:`torso_tilt_deg`).
+TILT_BINS_DEG: tuple[float, ...] = (0.0, 20.0, 40.0, 60.0, 180.0)
 
 _J = {n: i for i, n in enumerate(DEMOCAP_JOINTS)}
 _M = {n: i for i, n in enumerate(MARKER_NAMES)}
@@ -120,6 +126,27 @@ SEGMENTS: tuple[tuple[str, str, str, str], ...] = (
         )
     ),
 )
+
+
+def torso_tilt_deg(joints: npt.ArrayLike) -> FloatArray:
+    """The torso's tilt from the vertical, degrees (F,), of joints (F, J, 3) in DEMOCAP_JOINTS
+    order, world frame (z up): the angle of Hips -> Neck from +z (0 upright, 90 bent double)."""
+    j = np.asarray(joints, np.float64)
+    t = j[:, _J["Neck"]] - j[:, _J["Hips"]]
+    cos = t[:, 2] / np.maximum(np.linalg.norm(t, axis=-1), 1e-12)
+    return np.asarray(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _per_tilt(err_mm: FloatArray, tilt_deg: FloatArray) -> dict[str, dict[str, Any]]:
+    """Per torso-tilt bin ("0-20", ...): frames and their MPJPE (None without frames)."""
+    out: dict[str, dict[str, Any]] = {}
+    for lo, hi in itertools.pairwise(TILT_BINS_DEG):
+        m = (tilt_deg >= lo) & (tilt_deg < hi)
+        out[f"{lo:.0f}-{hi:.0f}"] = {
+            "frames": int(m.sum()),
+            "mpjpe_mm": float(err_mm[m].mean()) if m.any() else None,
+        }
+    return out
 
 
 def _unit(v: FloatArray, fallback: FloatArray) -> FloatArray:
@@ -159,6 +186,9 @@ class EvalReport:
         inside_share: that share of the evaluated frames.
         frames_requested: frames asked for; ``skipped_frames`` of them had fewer than 2 points
             and are in no figure.
+        per_torso_tilt: MPJPE and frames per bin of the true torso's tilt from the vertical
+            (:data:`TILT_BINS_DEG`, :func:`torso_tilt_deg`), over every frame;
+            ``inside_per_torso_tilt`` over the frames inside the volume.
     """
 
     metrics: PoseMetrics
@@ -171,6 +201,8 @@ class EvalReport:
     inside_share: float = 1.0
     frames_requested: int = 0
     skipped_frames: int = 0
+    per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
+    inside_per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: the all-frames figures at the top (per-joint errors keyed by joint
@@ -183,7 +215,11 @@ class EvalReport:
         d["markers_seen"] = self.markers_seen
         d["frames_requested"] = self.frames_requested
         d["skipped_frames"] = self.skipped_frames
-        d["inside_volume"] = _summary(self.inside_metrics) | {"share": self.inside_share}
+        d["per_torso_tilt"] = self.per_torso_tilt
+        d["inside_volume"] = _summary(self.inside_metrics) | {
+            "share": self.inside_share,
+            "per_torso_tilt": self.inside_per_torso_tilt,
+        }
         return d
 
 
@@ -322,6 +358,9 @@ def evaluate(
     markers = predictor.predicts_markers  # "pose": no markers, so no segment frames either
     met = _metrics(markers, pred_j, true_j, pred_m, true_m, actions)
     ins = np.array(inside)
+    keep = list(EVAL_JOINTS)
+    err = np.linalg.norm(pred_j[:, keep] - true_j[:, keep], axis=-1).mean(axis=1)
+    tilt = torso_tilt_deg(true_j)
     met_in = None
     if ins.any():
         met_in = _metrics(
@@ -343,6 +382,8 @@ def evaluate(
         inside_share=float(ins.mean()),
         frames_requested=requested,
         skipped_frames=requested - len(clouds),
+        per_torso_tilt=_per_tilt(err, tilt),
+        inside_per_torso_tilt=_per_tilt(err[ins], tilt[ins]),
     )
 
 

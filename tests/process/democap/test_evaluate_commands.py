@@ -14,7 +14,13 @@ from mocaprig.process.democap import demo_figures
 from mocaprig.process.democap.checkpoint import DEFAULT_CHECKPOINT
 from mocaprig.process.democap.config import DemocapConfig
 from mocaprig.process.democap.dataset import make_pool
-from mocaprig.process.democap.evaluate import EVAL_JOINTS, SEGMENTS, evaluate, segment_quaternions
+from mocaprig.process.democap.evaluate import (
+    EVAL_JOINTS,
+    SEGMENTS,
+    evaluate,
+    segment_quaternions,
+    torso_tilt_deg,
+)
 from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.train import TrainOptions, train
 from mocaprig.process.metrics import quaternion_angle_deg
@@ -103,6 +109,39 @@ def test_cli_eval_json(capsys: pytest.CaptureFixture[str]) -> None:
     out = json.loads(capsys.readouterr().out)
     assert {"mpjpe_mm", "mpmpe_mm", "pck50"} <= set(out)
     assert set(out["by_cameras"]) == {"4", "3", "2"}
+
+
+def test_torso_tilt_is_the_hips_to_neck_angle_from_the_vertical() -> None:
+    from mocaprig.process.body import DEMOCAP_JOINTS
+
+    j = np.zeros((3, len(DEMOCAP_JOINTS), 3))
+    hips, neck = DEMOCAP_JOINTS.index("Hips"), DEMOCAP_JOINTS.index("Neck")
+    j[:, hips] = [0.0, 0.0, 1.0]
+    j[0, neck] = [0.0, 0.0, 1.5]  # upright
+    j[1, neck] = [0.0, 0.3, 1.3]  # bent forward 45 degrees
+    j[2, neck] = [0.5, 0.0, 1.0]  # bent double, sideways
+    np.testing.assert_allclose(torso_tilt_deg(j), [0.0, 45.0, 90.0], atol=1e-9)
+    assert torso_tilt_deg(j).shape == (3,)
+    assert j[1, neck, 1] == 0.3  # the input is untouched
+
+
+@needs_ckpt
+def test_cli_eval_gives_figures_by_torso_tilt_over_every_frame_and_inside(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["democap", "eval", "--freestyle", "--frames", "4", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    bins, inside = out["per_torso_tilt"], out["inside_volume"]["per_torso_tilt"]
+    assert list(bins) == ["0-20", "20-40", "40-60", "60-180"]
+    assert sum(b["frames"] for b in bins.values()) == out["frames"]
+    assert sum(b["frames"] for b in inside.values()) == out["inside_volume"]["frames"]
+    for b in bins.values():
+        assert (b["mpjpe_mm"] is None) == (b["frames"] == 0)
+    # the frame-weighted bins give back the overall MPJPE
+    total = sum(b["mpjpe_mm"] * b["frames"] for b in bins.values() if b["frames"])
+    assert total / out["frames"] == pytest.approx(out["mpjpe_mm"], rel=1e-9)
+    assert main(["democap", "eval", "--freestyle", "--frames", "2"]) == 0
+    assert "by the torso's tilt from the vertical" in capsys.readouterr().out
 
 
 @needs_ckpt
