@@ -66,7 +66,7 @@ from mocaprig.process.democap.simdata import (
     PoseFrames,
     in_frustum,
 )
-from mocaprig.process.metrics import PoseMetrics, pose_metrics
+from mocaprig.process.metrics import PoseMetrics, per_group_mean, point_errors, pose_metrics
 
 __all__ = [
     "EVAL_JOINTS",
@@ -137,16 +137,13 @@ def torso_tilt_deg(joints: npt.ArrayLike) -> FloatArray:
     return np.asarray(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
-def _per_tilt(err_mm: FloatArray, tilt_deg: FloatArray) -> dict[str, dict[str, Any]]:
-    """Per torso-tilt bin ("0-20", ...): frames and their MPJPE (None without frames)."""
-    out: dict[str, dict[str, Any]] = {}
-    for lo, hi in itertools.pairwise(TILT_BINS_DEG):
-        m = (tilt_deg >= lo) & (tilt_deg < hi)
-        out[f"{lo:.0f}-{hi:.0f}"] = {
-            "frames": int(m.sum()),
-            "mpjpe_mm": float(err_mm[m].mean()) if m.any() else None,
-        }
-    return out
+def _per_tilt(errors_mm: FloatArray, tilt_deg: FloatArray) -> dict[str, dict[str, Any]]:
+    """Per torso-tilt bin ("0-20", ...) of joint errors (F, K): frames and their MPJPE (None
+    without frames)."""
+    names = [f"{lo:.0f}-{hi:.0f}" for lo, hi in itertools.pairwise(TILT_BINS_DEG)]
+    labels = [names[i] for i in np.digitize(tilt_deg, TILT_BINS_DEG[1:-1])]
+    means = per_group_mean(errors_mm, labels) if labels else {}
+    return {n: {"frames": labels.count(n), "mpjpe_mm": means.get(n)} for n in names}
 
 
 def _unit(v: FloatArray, fallback: FloatArray) -> FloatArray:
@@ -359,7 +356,7 @@ def evaluate(
     met = _metrics(markers, pred_j, true_j, pred_m, true_m, actions)
     ins = np.array(inside)
     keep = list(EVAL_JOINTS)
-    err = np.linalg.norm(pred_j[:, keep] - true_j[:, keep], axis=-1).mean(axis=1)
+    err = point_errors(pred_j[:, keep], true_j[:, keep])
     tilt = torso_tilt_deg(true_j)
     met_in = None
     if ins.any():
