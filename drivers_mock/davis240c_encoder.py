@@ -284,6 +284,10 @@ class DavisWordEncoder:
         self._pending_wrap_epoch_us = 0
         self._reset_due = False
         self._units: list[_Unit] = []  # held words, sorted by (time, priority, sequence)
+        # Words that came due while the output was stalled, in arrival order; they are sent,
+        # stamped with the stall's end, when it clears. Kept apart from ``_units`` so that a
+        # long stall costs each step only its new words (not a re-sort of all that wait).
+        self._stalled: list[_Unit] = []
         # Held DVS events: chunks in time order, each sorted by ``t`` (internal µs).
         self._events: list[npt.NDArray[np.void]] = []
         self._pulse_start_us: int | None = None
@@ -356,6 +360,7 @@ class DavisWordEncoder:
         """
         t1 = t1_us - self._base_us
         self._units.clear()
+        self._stalled.clear()
         self._events = []
         self._now_us = max(self._now_us, t1)
         self._emitted_us = max(self._emitted_us, self._now_us)
@@ -597,6 +602,11 @@ class DavisWordEncoder:
                     host_after_us=t_wrap,
                 )
             )
+        if self._stalled:
+            for u in self._stalled:
+                u.t_us = self._emitted_us  # the stall ended here; stamped when sent
+            units.extend(self._stalled)
+            self._stalled = []
         units.extend(due)
         if cfg.bandwidth_bytes_per_s is not None and dvs.size:
             dvs = self._apply_bandwidth_cap(dvs, units, horizon, cfg.bandwidth_bytes_per_s)
@@ -638,15 +648,11 @@ class DavisWordEncoder:
                 held = dvs.copy()
                 held["t"] = horizon
                 self._events.insert(0, held)
-        kept: list[_Unit] = []
         for u in due:
             if u.pri == _PRI_EXT and cfg.drop_extinput_on_transfer_stall:
                 self.extinput_dropped += 1
                 continue
-            u.t_us = horizon  # APS/IMU wait (WAIT_ON_TRANSFER_STALL); stamped when sent
-            kept.append(u)
-        self._units = kept + self._units
-        self._units.sort(key=_unit_key)
+            self._stalled.append(u)  # APS/IMU wait (WAIT_ON_TRANSFER_STALL)
         if n_wraps:
             self._pending_wraps += n_wraps
             self._pending_wrap_epoch_us = self._next_wrap_us - TIMESTAMP_WRAP_US

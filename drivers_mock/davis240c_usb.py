@@ -16,7 +16,9 @@ from the driver, so a test can catch the two disagreeing:
   resets device time; ``clear_halt(0x82)`` drops unsent data (§12.9);
 * time: ``pacing="asap"`` advances device time by ``chunk_us`` per step inside ``bulk_read``
   (deterministic, for tests); ``pacing="realtime"`` lets device time follow the wall clock while
-  the counter runs (for live demos);
+  the counter runs (for live demos). One call simulates at most ``_CATCH_UP_WALL_S`` of wall
+  time: on a machine too loaded to simulate in real time, device time falls behind the wall
+  clock (logged once) instead of a catch-up that never ends starving the host's reads;
 * the output FIFO: between the logic and the host there is only ``fifo_bytes`` of buffering.
   While the host reads nothing (:meth:`Davis240CBackend.stall_host`, deterministic) device time
   runs on, the FIFO fills, and then the logic drops DVS / ext-input words (counted in MUX
@@ -110,6 +112,10 @@ _LANGID_EN_US = 0x0409
 _DEFAULT_SECONDS = 30.0
 #: Device time a blocking read (timeout 0) may simulate before giving up (asap pacing).
 _MAX_INFINITE_WAIT_US = 10_000_000
+#: Wall time one realtime catch-up may spend simulating before it hands the device back (s).
+_CATCH_UP_WALL_S = 0.05
+#: Device-time lag behind the wall clock that is logged as a warning (realtime pacing, µs).
+_LAG_WARN_US = 1_000_000
 
 # libusb1 error codes and strings as pyusb's libusb1 backend reports them.
 _LIBUSB_ERROR_NO_DEVICE = -4
@@ -615,6 +621,7 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
         self._carry = 0  # 1 while a word is split across transfers (odd-packet fault)
         self._ts_reset_fault_done = False
         self._anchor_wall: float | None = None
+        self._lag_warned = False
         self._lock = threading.RLock()
         self._config_version = -1
         self._held = False
@@ -828,9 +835,22 @@ class Davis240CBackend(usb.backend.IBackend):  # type: ignore[misc]
             return
         due = int((now - self._anchor_wall) * 1e6)
         steps = due // self._chunk_us
-        for _ in range(steps):
+        done = 0
+        while done < steps:
             self._step(self._chunk_us)
-        self._anchor_wall += steps * self._chunk_us * 1e-6
+            done += 1
+            if time.monotonic() - now > _CATCH_UP_WALL_S:
+                break
+        self._anchor_wall += done * self._chunk_us * 1e-6
+        lag_us = due - done * self._chunk_us
+        if lag_us > _LAG_WARN_US and not self._lag_warned:
+            self._lag_warned = True
+            _log.warning(
+                "DAVIS mock %s: this machine simulates the camera slower than real time; device "
+                "time lags the wall clock by %.1f s (realtime pacing)",
+                self.serial,
+                lag_us / 1e6,
+            )
 
     # -- IBackend: enumeration and descriptors -----------------------------------------------------
 

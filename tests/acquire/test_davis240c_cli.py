@@ -10,6 +10,7 @@ import pytest
 
 import mocaprig.acquire.davis240c
 from mocaprig.acquire.commands import DEVICE_PROBERS, DeviceListing
+from mocaprig.acquire.davis240c import Davis240C
 from mocaprig.cli import main
 from mocaprig.drivers_mock.davis240c_usb import DavisFaults, SyntheticDavisSource, mock_backend
 from mocaprig.errors import DeviceDisconnectedError
@@ -163,9 +164,10 @@ def test_stream_reports_a_disconnect_and_fails(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     def unplugging(**kwargs: Any) -> Any:
-        # The camera is pulled once the host has read 1 MB (well after the start sequence):
-        # an unplug at a fixed device time cut the start instead on a loaded machine, where
-        # real-time pacing had delivered next to nothing by then.
+        # The camera is pulled once the host has read 1 MB after the start sequence's
+        # timestamp reset: an unplug at a fixed device time, or after 1 MB counted from the
+        # first read, cut the start instead on a loaded machine (the host discards what comes
+        # before the reset word, and the start's sleeps stretch there).
         source = SyntheticDavisSource(seed=5, event_rate_hz=50_000.0)
         backend = mock_backend(source=source, pacing="realtime")
         read = backend.bulk_read
@@ -173,7 +175,7 @@ def test_stream_reports_a_disconnect_and_fails(
 
         def bulk_read(dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
             n = read(dev_handle, ep, intf, buff, timeout)
-            taken[0] += n
+            taken[0] += n if reset[0] else 0
             if taken[0] >= 1_000_000 and backend.faults.unplug_at_us is None:
                 backend.faults = DavisFaults(unplug_at_us=backend.uptime_us + 1)
             return n
@@ -181,7 +183,15 @@ def test_stream_reports_a_disconnect_and_fails(
         backend.bulk_read = bulk_read  # type: ignore[method-assign]
         return backend
 
+    reset = [False]
+    timestamp_reset = Davis240C.timestamp_reset
+
+    def resetting(cam: Davis240C) -> None:
+        timestamp_reset(cam)
+        reset[0] = True
+
     monkeypatch.setattr(mocaprig.acquire.davis240c, "load_mock_backend", unplugging)
+    monkeypatch.setattr(Davis240C, "timestamp_reset", resetting)
     raw = tmp_path / "cap.bin"
     argv = ["davis", "stream", "--mock", "--seconds", "60", "--raw-out", str(raw), "--json"]
     assert main(argv) == 1

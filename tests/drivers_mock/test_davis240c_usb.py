@@ -326,6 +326,36 @@ def test_realtime_pacing_follows_the_wall_clock():
     assert 0 < host.events[-1][0] < 500_000
 
 
+class SlowSource(ScriptedSource):
+    """A source that costs 4 ms of wall time per 1 ms window: a machine too loaded to keep up."""
+
+    def activity(self, t0_us: int, t1_us: int) -> DavisActivity:
+        time.sleep(0.004 * (t1_us - t0_us) / 1000)
+        return super().activity(t0_us, t1_us)
+
+
+def test_realtime_pacing_slower_than_the_wall_clock_still_serves_every_read(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # A catch-up of all the wall time due in one read never ends once simulating is slower
+    # than real time (each read owes more than the last): the host starved and the CLI hung
+    # until the CI timeout. Reads must keep returning data while device time falls behind.
+    source = SlowSource(period_us=10)
+    dev = find(mock_backend(source=source, pacing="realtime", latency_us=0))
+    data_start(dev)
+    chunks: list[bytes] = []
+    with caplog.at_level("WARNING"):
+        for _ in range(400):
+            chunks.append(bytes(dev.read(0x82, 1 << 16, 1000)))
+            if "slower than real time" in caplog.text:
+                break
+    assert "slower than real time" in caplog.text
+    assert all(chunks)
+    times = [e[0] for e in host_decode(b"".join(chunks)).events]
+    assert times == sorted(times)
+    assert times[-1] - times[0] > 100_000  # device time ran on, event after event
+
+
 # -- faults --------------------------------------------------------------------------------------
 
 
