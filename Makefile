@@ -33,10 +33,11 @@ typecheck: $(STAMP)
 
 # The suite runs on TEST_WORKERS processes (pytest-xdist; a test file stays on one, so its
 # module fixtures are built once), each with one BLAS/OpenMP/torch thread so that the workers
-# do not spin against each other; the slowest tests are listed at the end.
+# do not spin against each other; files are handed out in the order tests/conftest.py puts them
+# (slow ones first), not by their number of tests; the slowest tests are listed at the end.
 unit: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
-		$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=15
+		$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
 
 test: lint typecheck unit
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -35,6 +36,26 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Run the files with ``slow`` tests first, the end-to-end ones (``tests/e2e``) first of all,
+    each file's tests together and in their own order.
+
+    ``make unit`` hands whole files to its pytest-xdist workers as they free up
+    (``--dist loadfile --no-loadscope-reorder``). Handed out last, one file of minutes (the
+    demo) kept one worker busy for minutes after the other had run out of work; handed out
+    first, the many quick files even out the two workers at the end.
+    """
+    slow_files = {item.path for item in items if item.get_closest_marker("slow")}
+    e2e = Path(__file__).resolve().parent / "e2e"
+
+    def rank(item: pytest.Item) -> int:
+        if item.path not in slow_files:
+            return 2
+        return 0 if e2e in item.path.parents else 1
+
+    items.sort(key=rank)  # stable: within a rank, the collection order
+
+
 @dataclass(frozen=True)
 class CalibratedSession:
     """A simulated session recorded through the drivers and calibrated against its Vicon trial."""
@@ -53,18 +74,32 @@ def calibrated_session(tmp_path_factory: pytest.TempPathFactory) -> CalibratedSe
     """One 4 s session (seed 5, four D415s, no DAVIS: the rig DeMoCap is trained for), its
     calibration and truth, shared by every test that needs a calibrated recording (~30 s once).
     The mock cameras of the same seed and length (``open_cameras("mock", seed=5, seconds=4)``)
-    see the same world, so the calibration and truth serve a live run on them too."""
-    from mocaprig.calib.calibration import write_calibration
+    see the same world, so the calibration and truth serve a live run on them too.
+
+    Under pytest-xdist the workers share one session (made by the first to ask, under a lock,
+    in the run's common temporary folder), as ``karate_session`` of tests/e2e/conftest.py."""
+    from filelock import FileLock
+
+    from mocaprig.calib.calibration import read_calibration, write_calibration
     from mocaprig.calib.vicon_calibration import calibrate_vicon
     from mocaprig.drivers_mock import simulate_session
     from mocaprig.drivers_mock.truth import read_truth
 
-    root = tmp_path_factory.mktemp("calibrated-session")
-    sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
-    session = sim.out_dir / "session.mcap"
-    cal = calibrate_vicon(session, sim.c3d_path).calibration
-    calib = write_calibration(cal, root / "calib.toml")
-    return CalibratedSession(root, session, calib, cal, read_truth(sim.out_dir), 5, 4.0)
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # this run's folder, above every worker's own
+    root = base / "calibrated-session"
+    calib = root / "calib.toml"
+    with FileLock(str(base / "calibrated-session.lock")):
+        if not (root / "complete").exists():
+            sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
+            write_calibration(
+                calibrate_vicon(sim.out_dir / "session.mcap", sim.c3d_path).calibration, calib
+            )
+            (root / "complete").touch()
+    session = root / "sim" / "session.mcap"
+    truth = read_truth(root / "sim")
+    return CalibratedSession(root, session, calib, read_calibration(calib), truth, 5, 4.0)
 
 
 @pytest.fixture(scope="session")

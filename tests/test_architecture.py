@@ -67,6 +67,7 @@ def _library_files(package: str) -> list[Path]:
     return sorted((ROOT / package).rglob("*.py"))
 
 
+@pytest.mark.slow
 def test_every_import_goes_through_the_mocaprig_namespace() -> None:
     offenders = []
     for package in PACKAGES:

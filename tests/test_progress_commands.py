@@ -53,6 +53,7 @@ def test_simulate_is_quiet_under_json_and_quiet(
         assert json.loads(out)["seconds"] == 3.0
 
 
+@pytest.mark.slow
 def test_davis_decode_draws_progress_and_is_quiet_under_json(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

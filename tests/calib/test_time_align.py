@@ -289,6 +289,7 @@ def _projected_frames(
     return out
 
 
+@pytest.mark.slow
 def test_refine_by_reprojection_pins_offset_and_drift() -> None:
     sc = build_scenario("default", seed=3, seconds=20)
     cap = simulate_vicon(sc)

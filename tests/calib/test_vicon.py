@@ -583,6 +583,7 @@ def test_an_error_in_the_isolated_reader_becomes_vicon_file_error(
         max_size=6,
     )
 )
+@pytest.mark.slow
 def test_mutated_files_either_read_or_raise_vicon_file_error(
     small_c3d: Path, edits: list[tuple[int, int]]
 ) -> None:

@@ -66,6 +66,7 @@ def fast_run(karate: Scenario) -> tuple[DavisSimulator, DavisActivity]:
     return sim, sim.activity(0, 20_000)
 
 
+@pytest.mark.slow
 def test_output_is_a_valid_activity(fast_run) -> None:
     _, act = fast_run
     assert isinstance(act, DavisActivity)
@@ -94,6 +95,7 @@ def test_static_world_without_noise_is_silent(karate: Scenario) -> None:
     assert act.events.size == 0
 
 
+@pytest.mark.slow
 def test_event_rate_grows_with_motion_speed(karate: Scenario) -> None:
     # An ideal pixel (no dead time, no bandwidth limit): the rate follows the speed. With the
     # realistic defaults fast edges saturate the pixels (test_davis240c_sim_realism.py).

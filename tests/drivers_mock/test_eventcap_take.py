@@ -15,6 +15,7 @@ def take() -> EventcapTake:
     return simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0)
 
 
+@pytest.mark.slow
 def test_truth_is_sampled_every_millisecond_over_the_take(take: EventcapTake) -> None:
     assert take.truth_t_us[0] == 0
     assert np.all(np.diff(take.truth_t_us) == 1000)

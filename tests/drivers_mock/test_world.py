@@ -173,6 +173,7 @@ def test_the_master_loses_its_first_captures_but_still_pulses() -> None:
     assert master.captures[3].exposure_start_ns > first_pulse
 
 
+@pytest.mark.slow
 def test_the_davis_stamps_its_trigger_input_with_jitter_the_same_in_any_window() -> None:
     from mocaprig.drivers_mock.davis240c_sim import DavisSimulator
 

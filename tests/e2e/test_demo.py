@@ -15,6 +15,7 @@ from mocaprig.process.democap.corpus import default_corpus_dir
 
 # The whole toolkit in one test: ~4 min on an idle 2-core machine, over 10 under heavy load.
 @pytest.mark.timeout(1500)
+@pytest.mark.slow
 def test_demo_command_reports_figures_against_truth(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

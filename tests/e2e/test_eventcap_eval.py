@@ -8,6 +8,9 @@ import pytest
 
 from mocaprig.cli import main
 
+#: The test here simulates a take and runs three methods on it: about a minute.
+pytestmark = pytest.mark.slow
+
 
 def test_eventcap_eval_scores_ours_and_both_baselines_on_the_same_frames(
     capsys: pytest.CaptureFixture[str],

@@ -25,6 +25,9 @@ from mocaprig.cli import main
 from mocaprig.drivers_mock.eventcap_session import read_session_truth, write_session_inputs
 from mocaprig.process.body.kinematics import EVENTCAP_KEYPOINTS
 
+#: Every test here builds or shares a simulated session: minutes, not seconds.
+pytestmark = pytest.mark.slow
+
 BATCHES = 2
 START_S = 1.0
 

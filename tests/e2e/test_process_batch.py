@@ -29,6 +29,9 @@ from mocaprig.cli import main
 from mocaprig.drivers_mock.eventcap_session import read_session_truth, write_session_inputs
 from mocaprig.process.batch.commands import register_process
 
+#: Every test here builds or shares a simulated session: minutes, not seconds.
+pytestmark = pytest.mark.slow
+
 DEMOCAP = ["--democap-every", "30", "--democap-span", "2"]
 EVENTCAP = ["--eventcap-start", "1.0", "--eventcap-batches", "2", "--segment-batches", "1"]
 

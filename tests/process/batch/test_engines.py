@@ -87,6 +87,7 @@ def fake_replay() -> Iterator[None]:
 
 
 @pytest.mark.usefixtures("fake_replay")
+@pytest.mark.slow
 def test_a_killed_dask_worker_mid_run_is_retried_and_the_run_completes(tmp_path: Path) -> None:
     pytest.importorskip("distributed", reason=NO_DASK)
     cal = write_calibration(fake_tasks.calibration(), tmp_path / "calib.toml")

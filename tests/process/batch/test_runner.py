@@ -197,6 +197,7 @@ def test_a_failed_segment_is_retried_alone(tmp_path: Path) -> None:
     assert job.retried == ("segment 1: RuntimeError: segment boom",)
 
 
+@pytest.mark.slow
 def test_a_dead_pool_process_is_retried(tmp_path: Path) -> None:
     sessions = _sessions(tmp_path, {"a": "die-once"})
     with ProcessPoolEngine(1) as engine:

@@ -86,6 +86,7 @@ _BOUNDS = {1: (53.0, 0.64), 3: (36.0, 0.84)}  # rotations -> (MPJPE bound mm, PC
 @needs_ckpt
 @pytest.mark.parametrize("rotations", [1, 3])
 @pytest.mark.parametrize("seed", [11, 12, 13])
+@pytest.mark.slow
 def test_committed_lite_model_accuracy_on_held_out_data(seed: int, rotations: int) -> None:
     rep = evaluate(
         DemocapPredictor(rotations=rotations), seed=seed, num_cameras=4, frames_per_take=8
@@ -156,6 +157,7 @@ def test_cli_eval_on_held_out_random_key_poses(capsys: pytest.CaptureFixture[str
     assert "x.bvh" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_train_then_resume_then_eval(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -223,6 +223,7 @@ def test_unseen_real_flags_and_leaves_out_trained_clips(
     assert loao["walk"].trained_clips == ("cmu_07_12",)
 
 
+@pytest.mark.slow
 def test_training_takes_corpus_clips_and_validates_on_its_own_split(
     shared_data: Path, tmp_path: Path, tiny_config: DemocapConfig
 ) -> None:
@@ -257,6 +258,7 @@ def test_training_takes_corpus_clips_and_validates_on_its_own_split(
 
 
 @needs_ckpt
+@pytest.mark.slow
 def test_cli_eval_perturbed_labels_each_figure(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["democap", "eval", "--protocol", "perturbed", "--frames", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -140,6 +140,7 @@ def keep_torch_threads() -> Iterator[None]:
     torch.set_num_threads(threads)
 
 
+@pytest.mark.slow
 def test_spans_of_a_plan_join_into_the_whole_replay(replayed: Replayed, tmp_path: Path) -> None:
     # Every 7th instant, in two spans run in reverse order: what `mocaprig process` sends to
     # its workers. Each instant stands alone, so the joined result is the unsplit one.

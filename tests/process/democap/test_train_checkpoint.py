@@ -65,6 +65,7 @@ def test_resume_with_a_learning_rate_restarts_the_decay_from_it(
     assert ck.history[0]["lr"] != pytest.approx(expected)
 
 
+@pytest.mark.slow
 def test_batches_simulated_in_worker_processes_train_the_same_weights(
     tmp_path: Path, tiny_config: DemocapConfig
 ) -> None:
@@ -184,6 +185,7 @@ def _clip(name: str) -> BvhClip:
     return motion_as_bvh(np.array(motion.poses), shape, 60.0, name=name)
 
 
+@pytest.mark.slow
 def test_bvh_clips_join_the_training_pool_and_the_checkpoint_names_them(
     tmp_path: Path, tiny_config: DemocapConfig
 ) -> None:

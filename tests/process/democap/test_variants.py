@@ -242,6 +242,7 @@ def test_replay_refuses_a_checkpoint_without_markers(
 
 
 @pytest.mark.parametrize("variant", ["pose", "regression"])
+@pytest.mark.slow
 def test_cli_train_variant_then_eval(
     variant: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

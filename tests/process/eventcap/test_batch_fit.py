@@ -246,6 +246,7 @@ def batch() -> _Batch:
 # --- the batch fit --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_batch_fit_with_exact_associations_recovers_poses_far_better_than_linear(
     batch: _Batch,
 ) -> None:

@@ -253,6 +253,7 @@ def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x * x)))
 
 
+@pytest.mark.slow
 def test_sharp_frame_is_closer_to_the_render_than_the_blurred_frame(take: _Take) -> None:
     e = take.exposures[0]
     t_mid = (e.start_us + e.end_us) // 2
@@ -360,6 +361,7 @@ def _fit_or_nan(batch: EdiBatch, frames: list[np.ndarray], expo: list[Any], k: i
         ("davis346_icns_street/ecd_export", "frames.txt", (260, 346)),
     ],
 )
+@pytest.mark.slow
 def test_event_integral_predicts_the_next_real_frame_better_than_holding(
     shared_data: Path, folder: str, frames_txt: str | None, shape_hw: tuple[int, int]
 ) -> None:

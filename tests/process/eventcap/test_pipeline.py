@@ -128,6 +128,7 @@ def chained(batch: _Batch, start_pose: npt.NDArray[np.float64]) -> BatchResult:
     return _run(batch, start_pose)
 
 
+@pytest.mark.slow
 def test_batch_covers_every_millisecond_between_the_frames(
     batch: _Batch, result: BatchResult
 ) -> None:
@@ -158,6 +159,7 @@ def test_batch_uses_events_and_reports_stage_times(result: BatchResult) -> None:
     assert all(v >= 0.0 for v in result.stage_seconds.values())
 
 
+@pytest.mark.slow
 def test_start_pose_ties_the_first_frame_to_the_previous_batch(
     batch: _Batch, result: BatchResult, chained: BatchResult
 ) -> None:
@@ -173,6 +175,7 @@ def test_start_pose_ties_the_first_frame_to_the_previous_batch(
     assert chained.refined == result.refined - 1
 
 
+@pytest.mark.slow
 def test_batch_is_deterministic_and_leaves_threads_alone(
     batch: _Batch, start_pose: npt.NDArray[np.float64]
 ) -> None:
@@ -226,6 +229,7 @@ def test_body_shift_flags_a_turned_body_but_not_a_moved_one(start_pose: np.ndarr
     assert _body_shift_mm(start_pose, turned, shape) > 150.0
 
 
+@pytest.mark.slow
 def test_unswap_undoes_one_left_right_swap_and_keeps_true_detections(
     batch: _Batch, start_pose: npt.NDArray[np.float64]
 ) -> None:
@@ -260,6 +264,7 @@ def test_unswap_trusts_two_detections_that_both_disagree_with_the_handed_on_pose
     assert all(got is want for got, want in zip(out, given, strict=True))
 
 
+@pytest.mark.slow
 def test_first_batch_vote_undoes_a_swap_of_either_detection(batch: _Batch) -> None:
     # No pose handed on: detections a, b and the next frame's vote. Here the next frame's
     # detection is b's again (it agrees with the true a and b).
