@@ -57,8 +57,9 @@ class EventcapTake:
         events: DVS events (:data:`mocaprig.acquire.events.EVENT_DTYPE`), device µs, sorted.
         exposures: APS exposures (device µs, 10-bit CDS counts), in time order.
         t0_us: First device µs of the simulated events (``start_s``).
-        t1_us: End of the take (exclusive), device µs.
-        truth_t_us: Truth sample times (T,), device µs.
+        t1_us: End of the simulated events (exclusive), device µs: ``end_s``, else the
+            take's end.
+        truth_t_us: Truth sample times (T,), device µs, over the whole take.
         truth_pose: Pose vectors (T, 33) (``process.body.skeleton`` layout).
         truth_keypoints_m: The 19 EventCap keypoints (T, 19, 3), world frame, metres.
         truth_keypoints_px: Their projections (T, 19, 2) through ``camera``, px.
@@ -101,11 +102,13 @@ def simulate_eventcap_take(
     joint_map: Mapping[str, str] | None = None,
     scenario: str = "default",
     start_s: float = 0.0,
+    end_s: float | None = None,
     truth_step_us: int = 1000,
     progress: Callable[[int, int], None] | None = None,
     **davis_options: Any,
 ) -> EventcapTake:
-    """Simulate a DAVIS take of ``seconds`` from device time 0 with 1 kHz truth.
+    """Simulate a DAVIS take of ``seconds`` from device time 0 with 1 kHz truth (the events
+    and frames of ``[start_s, end_s)`` only, when given).
 
     Args:
         seed: World seed (body, texture, thresholds, noise).
@@ -115,6 +118,8 @@ def simulate_eventcap_take(
         scenario: Scenario name (see :data:`~mocaprig.drivers_mock.scenario.SCENARIOS`).
         start_s: Simulate the DAVIS only from this instant of the world (s): a short, cheap
             excerpt of a longer motion (the truth still covers the whole take).
+        end_s: Simulate the DAVIS only until this instant of the world (s; default: the end of
+            the take). The events and frames before it are those of the whole take.
         truth_step_us: Truth sampling period (µs; 1000 = the 1 kHz tracking rate).
         progress: Optional ``(done_us, total_us)`` callback while events are simulated.
         **davis_options: Keyword options of :class:`DavisSimulator` (exposure, contrast …).
@@ -128,11 +133,17 @@ def simulate_eventcap_take(
     )
     sim = DavisSimulator(world, **davis_options)
     camera = world.rig.davis.camera
-    t1_us = int(np.floor(float(sim.device_us(world.duration_ns))))
+    t_end_us = int(np.floor(float(sim.device_us(world.duration_ns))))
     t0_us = int(np.ceil(float(sim.device_us(round(start_s * 1e9)))))
-    if not 0 <= t0_us < t1_us:
+    if not 0 <= t0_us < t_end_us:
         msg = f"start_s={start_s} s must lie in [0, {seconds}) s, the take"
         raise ValidationError(msg)
+    t1_us = t_end_us
+    if end_s is not None:
+        t1_us = min(t_end_us, int(np.floor(float(sim.device_us(round(end_s * 1e9))))))
+        if t1_us <= t0_us:
+            msg = f"end_s={end_s} s must lie after start_s={start_s} s"
+            raise ValidationError(msg)
     events: list[npt.NDArray[np.void]] = []
     exposures: list[ApsExposure] = []
     for w0 in range(t0_us, t1_us, _WINDOW_US):
@@ -143,7 +154,9 @@ def simulate_eventcap_take(
         if progress is not None:
             progress(w1 - t0_us, t1_us - t0_us)
     all_events = np.concatenate(events) if events else sim.activity(0, 0).events
-    t_us = np.arange(0, t1_us, int(truth_step_us), dtype=np.int64)
+    # The truth covers the whole take whatever the excerpt: what is drawn from it (synthetic
+    # detections) is then the same for every excerpt.
+    t_us = np.arange(0, t_end_us, int(truth_step_us), dtype=np.int64)
     pose, kp = _truth(world, np.asarray(sim.session_ns(t_us), dtype=np.int64))
     uv, depth = project_points(
         kp.reshape(-1, 3), camera.T_world_cam, camera.K, camera.distortion, min_depth_m=None
@@ -178,6 +191,7 @@ def simulated_take_with_truth(
     joint_map: Mapping[str, str] | None = None,
     scenario: str = "default",
     start_s: float = 0.0,
+    end_s: float | None = None,
     progress: Callable[[int, int], None] | None = None,
     **davis_options: Any,
 ) -> TakeWithTruth:
@@ -191,13 +205,14 @@ def simulated_take_with_truth(
         joint_map=joint_map,
         scenario=scenario,
         start_s=start_s,
+        end_s=end_s,
         progress=progress,
         **davis_options,
     )
     cam = take.camera
     motion = Path(motion_path).stem if motion_path is not None else f"procedural:{scenario}"
     return TakeWithTruth(
-        label=f"{motion} seed {seed} ({start_s:g}–{seconds:g} s)",
+        label=f"{motion} seed {seed} ({start_s:g}–{seconds if end_s is None else end_s:g} s)",
         events=take.events,
         frames=tuple(ApsFrame(e.start_us, e.end_us, e.cds) for e in take.exposures),
         camera=EventCamera(

@@ -7,6 +7,7 @@ import pytest
 
 from mocaprig.calib.camera_model import project_points
 from mocaprig.drivers_mock.eventcap_take import EventcapTake, simulate_eventcap_take
+from mocaprig.errors import ValidationError
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +63,25 @@ def test_events_are_sorted_inside_the_take_and_frames_come_at_25_fps(take: Event
     starts = np.array([e.start_us for e in take.exposures])
     np.testing.assert_array_equal(np.diff(starts), 40_000)
     assert all(e.cds.shape == (180, 240) for e in take.exposures)
+
+
+def test_an_excerpt_ending_early_holds_the_whole_takes_events_frames_and_truth(
+    take: EventcapTake,
+) -> None:
+    part = simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0, end_s=2.1)
+    assert part.t0_us == take.t0_us
+    assert part.t1_us < take.t1_us
+    assert part.events.size > 0
+    np.testing.assert_array_equal(part.events, take.events[take.events["t"] < part.t1_us])
+    done = [e for e in take.exposures if e.end_us < part.t1_us]
+    assert [(e.start_us, e.end_us) for e in part.exposures] == [
+        (e.start_us, e.end_us) for e in done
+    ]
+    assert all(np.array_equal(a.cds, b.cds) for a, b in zip(part.exposures, done, strict=True))
+    np.testing.assert_array_equal(part.truth_t_us, take.truth_t_us)
+    np.testing.assert_array_equal(part.truth_keypoints_m, take.truth_keypoints_m)
+
+
+def test_an_excerpt_must_end_after_it_starts() -> None:
+    with pytest.raises(ValidationError, match=r"end_s=1\.5 s must lie after start_s=2\.0 s"):
+        simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0, end_s=1.5)
