@@ -47,8 +47,11 @@ examples:
 
 def register_process(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``process`` to the ``mocaprig`` parser."""
-    from mocaprig.process.batch.segments import DEFAULT_OVERLAP, DEFAULT_SEGMENT_BATCHES
-    from mocaprig.process.batch.tasks import DEFAULT_DEMOCAP_SPAN
+    from mocaprig.process.batch.segments import (
+        DEFAULT_DEMOCAP_SPAN,
+        DEFAULT_OVERLAP,
+        DEFAULT_SEGMENT_BATCHES,
+    )
 
     p = subparsers.add_parser(
         "process",

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from mocaprig.process.eventcap.pipeline import ApsFrame, EventcapOptions
 
 __all__ = [
+    "DEFAULT_DEMOCAP_SPAN",
     "DEFAULT_OVERLAP",
     "DEFAULT_SEGMENT_BATCHES",
     "EventcapInputs",
@@ -64,6 +65,10 @@ I64 = npt.NDArray[np.int64]
 DEFAULT_SEGMENT_BATCHES: Final = 25
 #: Warm-up batches run before a segment's kept batches (thrown away).
 DEFAULT_OVERLAP: Final = 1
+#: DeMoCap instants per task (10 s of a 30 fps rig: 15–40 s of work here at 7.5–20 instants/s,
+#: against 0.2–0.7 s to load the network and open the recording; benchmarks/democap_spans.py).
+#: Here beside the EventCap segment sizes so that the command line reads them without torch.
+DEFAULT_DEMOCAP_SPAN: Final = 300
 #: Host time (ns) around a segment's frames whose event packets it indexes: a packet is
 #: recorded within milliseconds of its events; 2 s covers a stalled USB queue.
 _EVENT_LOG_MARGIN_NS: Final = 2_000_000_000

@@ -22,6 +22,7 @@ from typing import Final, Literal
 
 from mocaprig.errors import ValidationError
 from mocaprig.process.batch.segments import (
+    DEFAULT_DEMOCAP_SPAN,
     DEFAULT_OVERLAP,
     DEFAULT_SEGMENT_BATCHES,
     EventcapInputs,
@@ -59,9 +60,6 @@ Method = Literal["democap", "eventcap"]
 METHODS: Final[tuple[Method, ...]] = ("democap", "eventcap")
 #: The outputs' stem in each method's folder (``democap.mcap`` + ``.c3d`` + ``.csv``, ...).
 OUTPUT_STEM: Final = {"democap": "democap", "eventcap": "eventcap"}
-#: DeMoCap instants per task (10 s of a 30 fps rig: 15–40 s of work here at 7.5–20 instants/s,
-#: against 0.2–0.7 s to load the network and open the recording; benchmarks/democap_spans.py).
-DEFAULT_DEMOCAP_SPAN: Final = 300
 
 
 @dataclass(frozen=True, slots=True)

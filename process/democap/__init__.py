@@ -12,28 +12,58 @@ rotation ensemble (:mod:`.infer`).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from mocaprig.process.democap.checkpoint import (
-    DEFAULT_CHECKPOINT,
-    Checkpoint,
-    load_checkpoint,
-    save_checkpoint,
-)
-from mocaprig.process.democap.config import CONFIGS, VARIANTS, DemocapConfig, config_by_name
-from mocaprig.process.democap.evaluate import EvalReport, evaluate, held_out_pool
-from mocaprig.process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
-from mocaprig.process.democap.live import (
-    LIVE_ROTATIONS,
-    LiveCamera,
-    LivePipeline,
-    LiveResult,
-    cameras_from_calibration,
-    live_predictor,
-)
-from mocaprig.process.democap.model import DemocapNet, build_network
-from mocaprig.process.democap.replay import ReplayResult, run_replay, score_replay
-from mocaprig.process.democap.train import TrainOptions, train
+from mocaprig.lazy_exports import lazy_getattr
+
+if TYPE_CHECKING:
+    from mocaprig.process.democap.checkpoint import (
+        DEFAULT_CHECKPOINT,
+        Checkpoint,
+        load_checkpoint,
+        save_checkpoint,
+    )
+    from mocaprig.process.democap.config import (
+        CONFIGS,
+        VARIANTS,
+        DemocapConfig,
+        config_by_name,
+    )
+    from mocaprig.process.democap.evaluate import EvalReport
+    from mocaprig.process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
+    from mocaprig.process.democap.live import (
+        LIVE_ROTATIONS,
+        LiveCamera,
+        LivePipeline,
+        LiveResult,
+        cameras_from_calibration,
+        live_predictor,
+    )
+    from mocaprig.process.democap.model import DemocapNet, build_network
+    from mocaprig.process.democap.replay import ReplayResult, run_replay, score_replay
+    from mocaprig.process.democap.train import TrainOptions
+
+#: The public names by submodule, imported on first use (:mod:`mocaprig.lazy_exports`): most
+#: need torch, which the commands that only register their options here should not import.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "checkpoint": ("DEFAULT_CHECKPOINT", "Checkpoint", "load_checkpoint", "save_checkpoint"),
+    "config": ("CONFIGS", "VARIANTS", "DemocapConfig", "config_by_name"),
+    "evaluate": ("EvalReport",),
+    "infer": ("DEFAULT_ROTATIONS", "DemocapPredictor", "Prediction"),
+    "live": (
+        "LIVE_ROTATIONS",
+        "LiveCamera",
+        "LivePipeline",
+        "LiveResult",
+        "cameras_from_calibration",
+        "live_predictor",
+    ),
+    "model": ("DemocapNet", "build_network"),
+    "replay": ("ReplayResult", "run_replay", "score_replay"),
+    "train": ("TrainOptions",),
+}
+__getattr__ = lazy_getattr(__name__, _EXPORTS)
+
 
 __all__ = [
     "CONFIGS",
@@ -56,13 +86,11 @@ __all__ = [
     "cameras_from_calibration",
     "config_by_name",
     "demo_figures",
-    "evaluate",
     "live_predictor",
     "load_checkpoint",
     "run_replay",
     "save_checkpoint",
     "score_replay",
-    "train",
 ]
 
 
@@ -78,6 +106,9 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
     Raises:
         ProcessingError: the committed checkpoint is missing or does not match.
     """
+    from mocaprig.process.democap.evaluate import evaluate, held_out_pool
+    from mocaprig.process.democap.infer import DemocapPredictor
+
     predictor = DemocapPredictor()
     pool = held_out_pool(seed)  # one test set for both inferences
     m = evaluate(

@@ -24,62 +24,155 @@ Stages per batch (the interval between two APS frames):
 
 from __future__ import annotations
 
-from mocaprig.process.eventcap.batch_fit import (
-    BatchFitOptions,
-    BatchFitResult,
-    Correspondences,
-    FrameDetections,
-    fit_batch,
-    fit_frame,
-    interpolate_poses,
-    linear_baseline,
-)
-from mocaprig.process.eventcap.camera import EventCamera
-from mocaprig.process.eventcap.detections import (
-    CocoKeypointDetections,
-    Detection,
-    Detector,
-    JsonDetections,
-    OpenPoseJsonDetections,
-    SyntheticDetections,
-    SyntheticNoise,
-    write_detections_json,
-)
-from mocaprig.process.eventcap.ecd import EcdTake, read_ecd_take
-from mocaprig.process.eventcap.edi import EdiBatch, LinearResponse, SharpFrame, TableResponse
-from mocaprig.process.eventcap.evaluate import EventcapEvaluation, TakeWithTruth, evaluate_take
-from mocaprig.process.eventcap.event_index import EventIndex, build_event_index, closest_events
-from mocaprig.process.eventcap.metrics import (
-    DataRate,
-    TrackingErrors,
-    data_rate,
-    evaluate_tracking,
-    upsample_linear,
-)
-from mocaprig.process.eventcap.pipeline import (
-    ApsFrame,
-    BatchResult,
-    EventcapOptions,
-    frame_detections,
-    run_batch,
-)
-from mocaprig.process.eventcap.raster import Raster, rasterize
-from mocaprig.process.eventcap.refine import RefineOptions, refine_frame, refine_frames
-from mocaprig.process.eventcap.run import (
-    EventcapResultsWriter,
-    EventcapRunResult,
-    ResultsHeader,
-    run_eventcap,
-)
-from mocaprig.process.eventcap.take import (
-    EventSource,
-    TakeChunk,
-    TakeResult,
-    array_source,
-    iter_take,
-    run_take,
-)
-from mocaprig.process.eventcap.tracking import TrackingOptions, TrackingResult, track_frames
+from typing import TYPE_CHECKING
+
+from mocaprig.lazy_exports import lazy_getattr
+
+if TYPE_CHECKING:
+    from mocaprig.process.eventcap.batch_fit import (
+        BatchFitOptions,
+        BatchFitResult,
+        Correspondences,
+        FrameDetections,
+        fit_batch,
+        fit_frame,
+        interpolate_poses,
+        linear_baseline,
+    )
+    from mocaprig.process.eventcap.camera import EventCamera
+    from mocaprig.process.eventcap.detections import (
+        CocoKeypointDetections,
+        Detection,
+        Detector,
+        JsonDetections,
+        OpenPoseJsonDetections,
+        SyntheticDetections,
+        SyntheticNoise,
+        write_detections_json,
+    )
+    from mocaprig.process.eventcap.ecd import EcdTake, read_ecd_take
+    from mocaprig.process.eventcap.edi import EdiBatch, LinearResponse, SharpFrame, TableResponse
+    from mocaprig.process.eventcap.evaluate import EventcapEvaluation, TakeWithTruth, evaluate_take
+    from mocaprig.process.eventcap.event_index import EventIndex, build_event_index, closest_events
+    from mocaprig.process.eventcap.metrics import (
+        DataRate,
+        TrackingErrors,
+        data_rate,
+        evaluate_tracking,
+        upsample_linear,
+    )
+    from mocaprig.process.eventcap.pipeline import (
+        ApsFrame,
+        BatchResult,
+        EventcapOptions,
+        frame_detections,
+        run_batch,
+    )
+    from mocaprig.process.eventcap.raster import Raster, rasterize
+    from mocaprig.process.eventcap.refine import RefineOptions, refine_frame, refine_frames
+    from mocaprig.process.eventcap.run import (
+        EventcapResultsWriter,
+        EventcapRunResult,
+        ResultsHeader,
+        run_eventcap,
+    )
+    from mocaprig.process.eventcap.take import (
+        EventSource,
+        TakeChunk,
+        TakeResult,
+        array_source,
+        iter_take,
+        run_take,
+    )
+    from mocaprig.process.eventcap.tracking import TrackingOptions, TrackingResult, track_frames
+
+#: The public names by submodule, imported on first use (:mod:`mocaprig.lazy_exports`).
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "batch_fit": (
+        "BatchFitOptions",
+        "BatchFitResult",
+        "Correspondences",
+        "FrameDetections",
+        "fit_batch",
+        "fit_frame",
+        "interpolate_poses",
+        "linear_baseline",
+    ),
+    "camera": ("EventCamera",),
+    "detections": (
+        "CocoKeypointDetections",
+        "Detection",
+        "Detector",
+        "JsonDetections",
+        "OpenPoseJsonDetections",
+        "SyntheticDetections",
+        "SyntheticNoise",
+        "write_detections_json",
+    ),
+    "ecd": (
+        "EcdTake",
+        "read_ecd_take",
+    ),
+    "edi": (
+        "EdiBatch",
+        "LinearResponse",
+        "SharpFrame",
+        "TableResponse",
+    ),
+    "evaluate": (
+        "EventcapEvaluation",
+        "TakeWithTruth",
+        "evaluate_take",
+    ),
+    "event_index": (
+        "EventIndex",
+        "build_event_index",
+        "closest_events",
+    ),
+    "metrics": (
+        "DataRate",
+        "TrackingErrors",
+        "data_rate",
+        "evaluate_tracking",
+        "upsample_linear",
+    ),
+    "pipeline": (
+        "ApsFrame",
+        "BatchResult",
+        "EventcapOptions",
+        "frame_detections",
+        "run_batch",
+    ),
+    "raster": (
+        "Raster",
+        "rasterize",
+    ),
+    "refine": (
+        "RefineOptions",
+        "refine_frame",
+        "refine_frames",
+    ),
+    "run": (
+        "EventcapResultsWriter",
+        "EventcapRunResult",
+        "ResultsHeader",
+        "run_eventcap",
+    ),
+    "take": (
+        "EventSource",
+        "TakeChunk",
+        "TakeResult",
+        "array_source",
+        "iter_take",
+        "run_take",
+    ),
+    "tracking": (
+        "TrackingOptions",
+        "TrackingResult",
+        "track_frames",
+    ),
+}
+__getattr__ = lazy_getattr(__name__, _EXPORTS)
 
 __all__ = [
     "ApsFrame",

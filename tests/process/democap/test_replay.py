@@ -24,7 +24,8 @@ from mocaprig.cli import main
 from mocaprig.drivers_mock.truth import Truth, democap_truth_at
 from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, DEMOCAP_PARENTS, MARKER_NAMES
-from mocaprig.process.democap import DemocapPredictor, evaluate
+from mocaprig.process.democap import DemocapPredictor
+from mocaprig.process.democap.evaluate import evaluate
 from mocaprig.process.democap.replay import (
     CLOUD_TOPIC,
     JOINTS_TOPIC,
