@@ -103,6 +103,7 @@ def simulate_eventcap_take(
     scenario: str = "default",
     start_s: float = 0.0,
     end_s: float | None = None,
+    max_frames: int | None = None,
     truth_step_us: int = 1000,
     progress: Callable[[int, int], None] | None = None,
     **davis_options: Any,
@@ -120,6 +121,8 @@ def simulate_eventcap_take(
             excerpt of a longer motion (the truth still covers the whole take).
         end_s: Simulate the DAVIS only until this instant of the world (s; default: the end of
             the take). The events and frames before it are those of the whole take.
+        max_frames: Stop simulating (at the end of a 100 ms window) once this many APS frames
+            from ``start_s`` are complete: what an evaluation of ``max_frames - 1`` batches uses.
         truth_step_us: Truth sampling period (µs; 1000 = the 1 kHz tracking rate).
         progress: Optional ``(done_us, total_us)`` callback while events are simulated.
         **davis_options: Keyword options of :class:`DavisSimulator` (exposure, contrast …).
@@ -144,6 +147,9 @@ def simulate_eventcap_take(
         if t1_us <= t0_us:
             msg = f"end_s={end_s} s must lie after start_s={start_s} s"
             raise ValidationError(msg)
+    if max_frames is not None and max_frames < 1:
+        msg = f"max_frames must be >= 1, got {max_frames}"
+        raise ValidationError(msg)
     events: list[npt.NDArray[np.void]] = []
     exposures: list[ApsExposure] = []
     for w0 in range(t0_us, t1_us, _WINDOW_US):
@@ -153,6 +159,9 @@ def simulate_eventcap_take(
         exposures.extend(act.exposures)
         if progress is not None:
             progress(w1 - t0_us, t1_us - t0_us)
+        if max_frames is not None and sum(e.start_us >= t0_us for e in exposures) >= max_frames:
+            t1_us = w1
+            break
     all_events = np.concatenate(events) if events else sim.activity(0, 0).events
     # The truth covers the whole take whatever the excerpt: what is drawn from it (synthetic
     # detections) is then the same for every excerpt.
@@ -192,6 +201,7 @@ def simulated_take_with_truth(
     scenario: str = "default",
     start_s: float = 0.0,
     end_s: float | None = None,
+    max_frames: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     **davis_options: Any,
 ) -> TakeWithTruth:
@@ -206,13 +216,16 @@ def simulated_take_with_truth(
         scenario=scenario,
         start_s=start_s,
         end_s=end_s,
+        max_frames=max_frames,
         progress=progress,
         **davis_options,
     )
     cam = take.camera
+    # The world second at which the simulated events end (the take's end unless cut short).
+    sim_end_s = round(float(take.simulator.session_ns(take.t1_us)) * 1e-9, 3)
     motion = Path(motion_path).stem if motion_path is not None else f"procedural:{scenario}"
     return TakeWithTruth(
-        label=f"{motion} seed {seed} ({start_s:g}–{seconds if end_s is None else end_s:g} s)",
+        label=f"{motion} seed {seed} ({start_s:g}–{float(sim_end_s):g} s)",
         events=take.events,
         frames=tuple(ApsFrame(e.start_us, e.end_us, e.cds) for e in take.exposures),
         camera=EventCamera(

@@ -212,6 +212,8 @@ def eventcap_eval(args: argparse.Namespace) -> int:
         joint_map=None if args.joint_map is None else load_joint_map(args.joint_map),
         scenario=args.scenario,
         start_s=args.start,
+        # With --batches, the DAVIS is simulated only until their frames are complete.
+        max_frames=None if args.batches is None else args.batches + 1,
         progress=progress.stage("simulating the DAVIS (µs)"),
     )
     result = evaluate_take(

@@ -85,3 +85,15 @@ def test_an_excerpt_ending_early_holds_the_whole_takes_events_frames_and_truth(
 def test_an_excerpt_must_end_after_it_starts() -> None:
     with pytest.raises(ValidationError, match=r"end_s=1\.5 s must lie after start_s=2\.0 s"):
         simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0, end_s=1.5)
+
+
+def test_an_excerpt_of_so_many_frames_stops_once_they_are_complete(take: EventcapTake) -> None:
+    part = simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0, max_frames=2)
+    assert take.t0_us == part.t0_us < part.t1_us < take.t1_us
+    assert len(part.exposures) >= 2
+    assert [(e.start_us, e.end_us) for e in part.exposures] == [
+        (e.start_us, e.end_us) for e in take.exposures[: len(part.exposures)]
+    ]
+    np.testing.assert_array_equal(part.events, take.events[take.events["t"] < part.t1_us])
+    with pytest.raises(ValidationError, match="max_frames must be >= 1, got 0"):
+        simulate_eventcap_take(seed=3, seconds=3.0, scenario="karate", start_s=2.0, max_frames=0)
