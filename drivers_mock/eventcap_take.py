@@ -225,7 +225,7 @@ def simulated_take_with_truth(
     sim_end_s = round(float(take.simulator.session_ns(take.t1_us)) * 1e-9, 3)
     motion = Path(motion_path).stem if motion_path is not None else f"procedural:{scenario}"
     return TakeWithTruth(
-        label=f"{motion} seed {seed} ({start_s:g}–{float(sim_end_s):g} s)",
+        label=f"{motion} seed {seed} ({start_s:g}–{sim_end_s:g} s)",
         events=take.events,
         frames=tuple(ApsFrame(e.start_us, e.end_us, e.cds) for e in take.exposures),
         camera=EventCamera(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,6 +57,25 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=rank)  # stable: within a rank, the collection order
 
 
+def built_once(
+    tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], object]
+) -> Path:
+    """The folder ``name`` of this test run, made by ``build(folder)`` once per run: under
+    pytest-xdist by the first worker to ask (under a lock, in the run's folder above every
+    worker's own), wherever the test files that need it landed."""
+    from filelock import FileLock
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent
+    folder = base / name
+    with FileLock(str(base / f"{name}.lock")):
+        if not (folder / "complete").exists():
+            build(folder)
+            (folder / "complete").touch()
+    return folder
+
+
 @dataclass(frozen=True)
 class CalibratedSession:
     """A simulated session recorded through the drivers and calibrated against its Vicon trial."""
@@ -76,27 +96,19 @@ def calibrated_session(tmp_path_factory: pytest.TempPathFactory) -> CalibratedSe
     The mock cameras of the same seed and length (``open_cameras("mock", seed=5, seconds=4)``)
     see the same world, so the calibration and truth serve a live run on them too.
 
-    Under pytest-xdist the workers share one session (made by the first to ask, under a lock,
-    in the run's common temporary folder), as ``karate_session`` of tests/e2e/conftest.py."""
-    from filelock import FileLock
-
+    Built once per run (:func:`built_once`), whichever pytest-xdist worker asks first."""
     from mocaprig.calib.calibration import read_calibration, write_calibration
     from mocaprig.calib.vicon_calibration import calibrate_vicon
     from mocaprig.drivers_mock import simulate_session
     from mocaprig.drivers_mock.truth import read_truth
 
-    base = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        base = base.parent  # this run's folder, above every worker's own
-    root = base / "calibrated-session"
+    def build(root: Path) -> None:
+        sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
+        cal = calibrate_vicon(sim.out_dir / "session.mcap", sim.c3d_path).calibration
+        write_calibration(cal, root / "calib.toml")
+
+    root = built_once(tmp_path_factory, "calibrated-session", build)
     calib = root / "calib.toml"
-    with FileLock(str(base / "calibrated-session.lock")):
-        if not (root / "complete").exists():
-            sim = simulate_session(root / "sim", seed=5, seconds=4.0, devices=("d415",), cameras=4)
-            write_calibration(
-                calibrate_vicon(sim.out_dir / "session.mcap", sim.c3d_path).calibration, calib
-            )
-            (root / "complete").touch()
     session = root / "sim" / "session.mcap"
     truth = read_truth(root / "sim")
     return CalibratedSession(root, session, calib, read_calibration(calib), truth, 5, 4.0)

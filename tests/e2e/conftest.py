@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
 from mocaprig.cli import main
+from tests.conftest import built_once
 
 
 @pytest.fixture(scope="session")
@@ -16,19 +16,12 @@ def karate_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     D415s (the slow part, ~60 s once): the folder with ``session.mcap``, ``truth/`` and
     ``vicon/``. Tests add their own side files beside it, never replace its files.
 
-    Under pytest-xdist the workers share one simulation (made by the first to ask, under a
-    lock, in the run's common temporary folder), wherever their test files landed."""
-    from filelock import FileLock
+    Built once per run (``built_once`` of tests/conftest.py), whichever pytest-xdist worker
+    asks first."""
 
-    root = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        root = root.parent  # this run's folder, above every worker's own
-    sim = root / "karate-session" / "take"
-    done = sim.parent / "complete"
-    with FileLock(str(root / "karate-session.lock")):
-        if not done.exists():
-            argv = ["simulate", "--scenario", "karate", "--seed", "2", "--seconds", "3"]
-            argv += ["--cameras", "2", "--devices", "davis,d415", "--davis-dvs", "--out", str(sim)]
-            assert main(["-q", *argv]) == 0
-            done.touch()
-    return sim
+    def build(folder: Path) -> None:
+        argv = ["simulate", "--scenario", "karate", "--seed", "2", "--seconds", "3"]
+        argv += ["--cameras", "2", "--devices", "davis,d415", "--davis-dvs"]
+        assert main(["-q", *argv, "--out", str(folder / "take")]) == 0
+
+    return built_once(tmp_path_factory, "karate-session", build) / "take"
