@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import shutil
 import subprocess
@@ -74,6 +76,30 @@ def built_once(
             build(folder)
             (folder / "complete").touch()
     return folder
+
+
+@pytest.fixture(scope="session")
+def rig_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One 6 s session of ``mocaprig simulate`` (seed 5, two D415s, the DAVIS without its DVS
+    and the sync box): the folder with ``session.mcap``, ``vicon/`` and ``truth/``; the
+    command's ``--json`` report is ``simulate.json`` beside that folder. Shared by the
+    recording, calibration and sync tests (6 s: a slave D415 is tied to the master by frame
+    counters only over >= 5 s of frames); tests write beside it, never into it.
+
+    Built once per run (:func:`built_once`), whichever pytest-xdist worker asks first."""
+    from mocaprig.cli import main
+
+    def build(root: Path) -> None:
+        argv = ["-q", "simulate", "--seconds", "6", "--seed", "5", "--cameras", "2"]
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            code = main([*argv, "--out", str(root / "take"), "--json"])
+        if code != 0:
+            msg = f"mocaprig simulate exited {code}"
+            raise RuntimeError(msg)
+        (root / "simulate.json").write_text(buf.getvalue(), encoding="utf-8")
+
+    return built_once(tmp_path_factory, "rig-session", build) / "take"
 
 
 @dataclass(frozen=True)

@@ -54,11 +54,12 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
+import scipy.linalg
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -717,6 +718,10 @@ class _Problem:
         self.hi = t(DOF_LIMITS_RAD[:, 1].copy())
         self.n = POSE_DIM * num_frames + 3 * self.T
         self.free = torch.ones(self.n, dtype=torch.bool)
+        # Frames further apart than this share no term (E_temp: neighbours; E_cor: its pairs):
+        # the frames' part of JᵀWJ is a band of that many blocks either side of the diagonal.
+        reach = int(np.abs(fi - fj).max()) if fi.size else 0
+        self.frame_reach = max(reach, 1 if num_frames > 1 else 0)
 
     # -- model evaluation ---------------------------------------------------------------------
 
@@ -921,6 +926,49 @@ class _Problem:
 
     # -- steps ----------------------------------------------------------------------------
 
+    def solve(self, a: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor | None:
+        """``a⁻¹·rhs`` for a damped ``JᵀWJ`` (n, n) of this problem, or None when ``a`` is not
+        positive definite.
+
+        A batch's frames are coupled to their neighbours only (:attr:`frame_reach` blocks)
+        and to the few ``t′``: its frame part is solved as a band (LAPACK ``pbtrf``, cost
+        ∝ n·band² instead of n³) and the ``t′`` through their Schur complement. Problems
+        of a few frames are solved densely.
+        """
+        m = POSE_DIM * self.F
+        band = (self.frame_reach + 1) * POSE_DIM - 1
+        if 3 * band >= m:
+            chol, info = torch.linalg.cholesky_ex(a)
+            if int(info) != 0:
+                return None
+            return torch.cholesky_solve(rhs[:, None], chol)[:, 0]
+        a_np, b_np = a.numpy(), rhs.numpy()
+        frames = a_np[:m, :m]
+        lower = np.zeros((band + 1, m))
+        for k in range(band + 1):
+            lower[k, : m - k] = np.diagonal(frames, -k)
+        try:
+            factor = scipy.linalg.cholesky_banded(lower, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        coupling = a_np[:m, m:]
+        sol = scipy.linalg.cho_solve_banded(
+            (factor, True), np.column_stack([b_np[:m], coupling]), check_finite=False
+        )
+        x = sol[:, 0]
+        if a_np.shape[0] == m:
+            return torch.from_numpy(x)
+        schur = a_np[m:, m:] - coupling.T @ sol[:, 1:]
+        try:
+            y = scipy.linalg.cho_solve(
+                scipy.linalg.cho_factor(schur, lower=True, check_finite=False),
+                b_np[m:] - coupling.T @ x,
+                check_finite=False,
+            )
+        except np.linalg.LinAlgError:
+            return None
+        return torch.from_numpy(np.concatenate([x - sol[:, 1:] @ y, y]))
+
     def apply(self, s: _State, step: torch.Tensor) -> _State:
         """The state after ``step`` (n,), angles projected onto the limits."""
         fp = step[: self.F * POSE_DIM].reshape(self.F, POSE_DIM)
@@ -975,11 +1023,10 @@ def _levenberg_marquardt(
         a[:, fixed] = 0.0
         a[fixed, fixed] = 1.0
         rhs = torch.where(free, -g, torch.zeros_like(g))
-        chol, info = torch.linalg.cholesky_ex(a)
-        if int(info) != 0:
+        step = prob.solve(a, rhs)
+        if step is None:  # not positive definite: damp more
             mu, nu = mu * nu, nu * 2.0
             continue
-        step = torch.cholesky_solve(rhs[:, None], chol)[:, 0]
         trial = prob.apply(state, step)
         trial_terms = prob.energy(trial)
         actual = terms.total - trial_terms.total
@@ -1006,6 +1053,147 @@ def _levenberg_marquardt(
         "converged" if converged else "stopped",
     )
     return _LmOutcome(state, initial, terms, tuple(history), it, converged)
+
+
+def _frame_energies(prob: _Problem, s: _State) -> torch.Tensor:
+    """E_2D and E_3D of each frame (F, 2) at ``s``, for a problem of independent frames (no
+    E_cor pairs, no E_temp weight): then the energy is their sum, frame by frame."""
+    zero = torch.zeros(POSE_DIM, dtype=torch.float64)
+    _, r_2d, r_3d, _ = prob.raw_residuals(s, prob.quantities(s, zero), torch.zeros_like(s.tprime))
+    o = prob.opt
+    rho_2, _ = prob._robust((r_2d * r_2d).sum(-1), o.huber_2d_px)
+    out = torch.zeros(prob.F, 2, dtype=torch.float64)
+    out[:, 0].index_add_(0, prob.det_frame, o.lambda_2d * (prob.det_conf * rho_2).sum(-1))
+    e3 = o.lambda_3d * (prob.d3_w * (r_3d * r_3d).sum(-1)).sum(-1)
+    out[:, 1].index_add_(0, prob.d3_frame, e3)
+    return out
+
+
+def _levenberg_marquardt_frames(
+    prob: _Problem, state: _State, *, max_iterations: int, rtol: float, mu_init: float
+) -> list[_LmOutcome]:
+    """:func:`_levenberg_marquardt` run on each frame of a problem of independent frames at
+    once: one model evaluation per iteration for all of them, each frame with its own
+    damping, steps, acceptance and stop. Frame ``k``'s outcome is what the single-frame
+    problem (its pose block and its ``t′``, ``translation_3d="per_detection"``) would give,
+    to float rounding; its state is that single-frame problem's.
+
+    Raises:
+        ValidationError: the problem couples its frames (E_cor pairs, an E_temp weight, or a
+            ``t′`` shared by several frames).
+        ProcessingError: a frame's initial energy is not finite.
+    """
+    f_count, p = prob.F, POSE_DIM
+    if prob.cor_pad.shape[1] or bool((prob.phi != 0).any()) or prob.T not in (0, f_count):
+        msg = "frames fitted at once must be independent: no E_cor, no E_temp, one t′ each"
+        raise ValidationError(msg)
+    # Parameter indices of each frame's own problem: its pose block, then its t′.
+    idx = torch.arange(f_count)[:, None] * p + torch.arange(p)
+    if prob.T:
+        t_idx = f_count * p + 3 * torch.arange(f_count)[:, None] + torch.arange(3)
+        idx = torch.cat([idx, t_idx], dim=1)
+    rows, cols = idx[:, :, None], idx[:, None, :]
+    free = prob.free[idx]  # (F, m)
+    fixed = ~free
+
+    def model(s: _State) -> tuple[torch.Tensor, torch.Tensor]:
+        h_full, g_full, _ = prob.normal_equations(s)
+        return h_full[rows, cols], g_full[idx]
+
+    h, g = model(state)
+    energies = _frame_energies(prob, state)
+    totals = energies.sum(1)
+    if not bool(torch.isfinite(totals).all()):
+        msg = (
+            f"batch fit: the initial energy is not finite ({energies.tolist()}); a keypoint or "
+            "surface point lies in the camera's centre plane: check the camera pose and "
+            "initial poses"
+        )
+        raise ProcessingError(msg)
+    initial = energies.clone()
+    history = [[float(t)] for t in totals]
+    mu = torch.full((f_count,), float(mu_init), dtype=torch.float64)
+    nu = torch.full((f_count,), 2.0, dtype=torch.float64)
+    active = torch.ones(f_count, dtype=torch.bool)
+    converged = torch.zeros(f_count, dtype=torch.bool)
+    its = torch.zeros(f_count, dtype=torch.int64)
+    eye = torch.eye(idx.shape[1], dtype=torch.float64)
+    while bool(active.any()):
+        its += active.long()
+        d = torch.diagonal(h, dim1=1, dim2=2)
+        d = torch.maximum(d, 1e-9 * d.max(dim=1, keepdim=True).values.clamp(min=1e-300))
+        d = torch.where(free, d, torch.zeros_like(d))
+        a = h + torch.diag_embed(mu[:, None] * d)
+        # Held parameters: identity rows and columns, zero right-hand side, so δ = 0 there.
+        a = torch.where(fixed[:, :, None] | fixed[:, None, :], eye, a)
+        rhs = torch.where(free, -g, torch.zeros_like(g))
+        chol, info = torch.linalg.cholesky_ex(a)
+        ok = (info == 0) & active
+        failed = (info != 0) & active
+        mu, nu = torch.where(failed, mu * nu, mu), torch.where(failed, nu * 2.0, nu)
+        step = torch.zeros_like(g)
+        if bool(ok.any()):
+            step[ok] = torch.cholesky_solve(rhs[ok, :, None], chol[ok])[..., 0]
+            full = torch.zeros(prob.n, dtype=torch.float64)
+            full[idx] = step
+            trial = prob.apply(state, full)
+            trial_energies = _frame_energies(prob, trial)
+            actual = totals - trial_energies.sum(1)
+            accept = ok & (actual > 0.0)
+            reject = ok & ~accept
+            if bool(accept.any()):
+                predicted = -(step * g).sum(1) + mu * (step * d * step).sum(1)
+                rho = actual / predicted.clamp(min=1e-300)
+                scale = torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0)
+                mu = torch.where(accept, mu * scale, mu)
+                nu = torch.where(accept, torch.full_like(nu, 2.0), nu)
+                state = _select_frames(accept, trial, state)
+                h_new, g_new = model(state)
+                h = torch.where(accept[:, None, None], h_new, h)
+                g = torch.where(accept[:, None], g_new, g)
+                energies = torch.where(accept[:, None], trial_energies, energies)
+                totals = energies.sum(1)
+                for k in torch.nonzero(accept).flatten().tolist():
+                    history[k].append(float(totals[k]))
+                    if float(actual[k]) < rtol * history[k][-2]:
+                        converged[k] = True
+            mu, nu = torch.where(reject, mu * nu, mu), torch.where(reject, nu * 2.0, nu)
+            active &= ~converged & ~(reject & (mu > 1e12))
+        active &= its < max_iterations
+    out = []
+    for k in range(f_count):
+        one = _State(
+            root_r=state.root_r[k : k + 1],
+            root_t=state.root_t[k : k + 1],
+            angles=state.angles[k : k + 1],
+            tprime=state.tprime[k : k + 1] if prob.T else state.tprime,
+        )
+
+        def terms(e: torch.Tensor) -> EnergyTerms:
+            return EnergyTerms(cor=0.0, d2=float(e[0]), d3=float(e[1]), temp=0.0)
+
+        out.append(
+            _LmOutcome(
+                one,
+                terms(initial[k]),
+                terms(energies[k]),
+                tuple(history[k]),
+                int(its[k]),
+                bool(converged[k]),
+            )
+        )
+    return out
+
+
+def _select_frames(take: torch.Tensor, a: _State, b: _State) -> _State:
+    """Frames (and their ``t′``, one per frame) of ``a`` where ``take`` (F,), else of ``b``."""
+    tp = torch.where(take[:, None], a.tprime, b.tprime) if a.tprime.shape[0] else b.tprime
+    return _State(
+        root_r=torch.where(take[:, None, None], a.root_r, b.root_r),
+        root_t=torch.where(take[:, None], a.root_t, b.root_t),
+        angles=torch.where(take[:, None], a.angles, b.angles),
+        tprime=tp,
+    )
 
 
 # --- per-frame fit (root first) -------------------------------------------------------------
@@ -1112,24 +1300,30 @@ def _fit_single(
     if initial_pose is not None:
         candidates.insert(0, np.asarray(initial_pose, dtype=np.float64))
     # Stage 1: the root (and t′) with the angles held, from every candidate; keep the best.
-    root_free = torch.zeros(prob.n, dtype=torch.bool)
-    root_free[:ROOT_DIM] = True
-    root_free[POSE_DIM:] = True
-    prob.free = root_free
-    fits = []
-    for cand in candidates:
-        pose = cand[None].copy()
-        pose[:, ROOT_DIM:] = np.clip(pose[:, ROOT_DIM:], DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1])
-        state = _state_from_poses(pose, _closed_form_tprime(prob, pose))
-        fits.append(
-            _levenberg_marquardt(
-                prob,
-                state,
-                max_iterations=options.max_iterations,
-                rtol=options.rtol,
-                mu_init=options.mu_init,
-            )
-        )
+    # The candidates are independent problems, solved at once as the frames of one problem
+    # (each its own t′): the model's cost is in its many small steps, not in its size.
+    poses = np.array(candidates, dtype=np.float64)
+    poses[:, ROOT_DIM:] = np.clip(poses[:, ROOT_DIM:], DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1])
+    stage1 = _Problem(
+        num_frames=len(poses),
+        correspondences=Correspondences.empty(),
+        detections=[replace(local, frame=k) for k in range(len(poses))],
+        camera=camera,
+        shape=shape,
+        options=replace(options, translation_3d="per_detection"),
+        phi=np.zeros(NUM_BODY_KEYPOINTS),
+        association_poses=np.zeros((len(poses), POSE_DIM)),
+    )
+    root_free = torch.zeros(stage1.F, POSE_DIM, dtype=torch.bool)
+    root_free[:, :ROOT_DIM] = True
+    stage1.free = torch.cat([root_free.reshape(-1), torch.ones(3 * stage1.T, dtype=torch.bool)])
+    fits = _levenberg_marquardt_frames(
+        stage1,
+        _state_from_poses(poses, _closed_form_tprime(stage1, poses)),
+        max_iterations=options.max_iterations,
+        rtol=options.rtol,
+        mu_init=options.mu_init,
+    )
     best = min(fits, key=lambda f: f.final.total)
     iterations = sum(f.iterations for f in fits)
     # Stage 2: everything.

@@ -11,7 +11,6 @@ from mocaprig.acquire.recording import Recording
 from mocaprig.calib.calibration import calibration_to_dict, read_calibration
 from mocaprig.calib.vicon_calibration import ATTACHMENT_NAME
 from mocaprig.cli import main
-from mocaprig.drivers_mock import simulate_session
 
 
 @pytest.mark.parametrize("argv", [["calibrate"], ["calibrate", "vicon"], ["calibrate", "evaluate"]])
@@ -54,12 +53,10 @@ def test_calibrate_vicon_passes_the_timing_assumptions_to_the_calibration(
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 4 s simulated session (seed 5, two D415s, the DAVIS without DVS: APS, IMU and the
-    master's sync pulses on its trigger input): recording, Vicon C3D, truth."""
-    out = tmp_path_factory.mktemp("sim")
-    simulate_session(out, seed=5, seconds=4.0, devices=("davis", "d415"), cameras=2)
-    return out
+def session(rig_session: Path) -> Path:
+    """The shared 6 s session (seed 5, two D415s, the DAVIS without DVS: APS, IMU and the
+    master's sync pulses on its trigger input; tests/conftest.py): recording, Vicon C3D, truth."""
+    return rig_session
 
 
 @pytest.mark.slow

@@ -8,6 +8,7 @@ at frames 0 and 40 (2D σ 2 px, root-relative 3D σ 20 mm).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -385,14 +386,21 @@ def test_batch_fit_reassociates_at_the_current_poses_between_rounds() -> None:
 # --- Jacobian blocks ------------------------------------------------------------------------
 
 
-def _small_problem(robust: str, model: str) -> tuple[batch_fit._Problem, batch_fit._State]:
+def _small_problem(
+    robust: str, model: str, *, step: int = 10, reach: int = 1
+) -> tuple[batch_fit._Problem, batch_fit._State]:
+    """5 frames 10 ms apart (or more, closer), E_cor pairs ``reach`` frames apart."""
     rng = np.random.default_rng(3)
-    truth = _curved_window(1)[::10]  # 5 frames, 10 ms apart
+    truth = _curved_window(1)[::step]
+    n = len(truth) - 1
     cam = _camera()
     cor = _exact_correspondences(_tracks(rng, cam, truth, 6))
+    if reach != 1:
+        fj = np.clip(cor.frame_i + reach * (cor.frame_j - cor.frame_i), 0, n)
+        cor = dataclasses.replace(cor, frame_j=fj)
     dets = [
         _detections(rng, cam, truth[0], 0, s2=3.0, s3=30.0),
-        _detections(rng, cam, truth[4], 4, s2=3.0, s3=30.0),
+        _detections(rng, cam, truth[n], n, s2=3.0, s3=30.0),
     ]
     opt = BatchFitOptions(
         robust=robust,  # type: ignore[arg-type]
@@ -404,7 +412,7 @@ def _small_problem(robust: str, model: str) -> tuple[batch_fit._Problem, batch_f
     start = truth + rng.normal(0.0, 0.05, truth.shape)  # residuals of every term are non-zero
     start[:, ROOT_DIM:] = np.clip(start[:, ROOT_DIM:], DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1])
     prob = batch_fit._Problem(
-        num_frames=5,
+        num_frames=n + 1,
         correspondences=cor,
         detections=dets,
         camera=cam,
@@ -451,6 +459,27 @@ def test_normal_equations_match_dense_autograd_jacobian(robust: str, model: str)
     assert float(h[0:33, 66:99].abs().max()) == 0.0
 
 
+@pytest.mark.parametrize(("model", "reach"), [("relative", 1), ("fixed", 1), ("relative", 3)])
+def test_the_banded_solve_of_a_batch_matches_the_dense_one(model: str, reach: int) -> None:
+    prob, state = _small_problem("huber", model, step=2, reach=reach)  # 21 frames: a band
+    assert prob.frame_reach == reach
+    h, g, _ = prob.normal_equations(state)
+    d = torch.diagonal(h)
+    d = torch.clamp(d, min=1e-6 * float(d.max()))  # as the solver damps: unseen DoFs too
+    for mu in (1e-3, 10.0):
+        a = h + torch.diag(mu * d)
+        dense = torch.linalg.solve(a, -g)
+        banded = prob.solve(a, -g)
+        assert banded is not None
+        assert float((banded - dense).abs().max()) < 1e-8 * float(dense.abs().max())
+    indefinite = h.clone()
+    indefinite[40, 40] = -1.0
+    assert prob.solve(indefinite, -g) is None  # the solver then damps more
+    bad_t = h.clone()
+    bad_t[-1, -1] = -1.0
+    assert prob.solve(bad_t, -g) is None
+
+
 # --- the per-frame fit and its helpers ------------------------------------------------------
 
 
@@ -465,6 +494,77 @@ def test_fit_frame_recovers_a_pose_from_exact_detections() -> None:
     assert err < 5.0
     assert res.translation_3d_m is not None
     assert res.energy.d2 < 1.0
+
+
+@pytest.mark.parametrize("with_3d", [True, False])
+def test_independent_frames_solved_at_once_match_one_solve_each(with_3d: bool) -> None:
+    # fit_frame's root stage solves its candidates as the frames of one problem; each must
+    # come out as its own single-frame solve would (same damping path, stop and state).
+    rng = np.random.default_rng(11)
+    cam = _camera()
+    poses = _curved_window(3)[[0, 13, 26, 39]].copy()
+    det = _detections(rng, cam, poses[1], 0, s2=1.5, s3=15.0)
+    if not with_3d:
+        det = FrameDetections(frame=0, keypoints2d_px=det.keypoints2d_px, confidence=det.confidence)
+    starts = poses + rng.normal(0.0, 0.15, poses.shape) * (np.arange(33) < 6)
+    starts[:, 3:6] += rng.normal(0.0, 0.3, (len(starts), 3))
+    opts = BatchFitOptions(translation_3d="per_detection")
+    lm = {"max_iterations": 40, "rtol": 1e-8, "mu_init": 1e-3}
+
+    def problem(count: int) -> batch_fit._Problem:
+        prob = batch_fit._Problem(
+            num_frames=count,
+            correspondences=Correspondences.empty(),
+            detections=[dataclasses.replace(det, frame=k) for k in range(count)],
+            camera=cam,
+            shape=SHAPE,
+            options=opts,
+            phi=np.zeros(15),
+            association_poses=np.zeros((count, 33)),
+        )
+        free = torch.zeros(count, 33, dtype=torch.bool)
+        free[:, :6] = True
+        prob.free = torch.cat([free.reshape(-1), torch.ones(3 * prob.T, dtype=torch.bool)])
+        return prob
+
+    many = problem(len(starts))
+    state = batch_fit._state_from_poses(starts, batch_fit._closed_form_tprime(many, starts))
+    together = batch_fit._levenberg_marquardt_frames(many, state, **lm)
+    one = problem(1)
+    for k, out in enumerate(together):
+        s = starts[k : k + 1]
+        alone = batch_fit._levenberg_marquardt(
+            one, batch_fit._state_from_poses(s, batch_fit._closed_form_tprime(one, s)), **lm
+        )
+        assert out.iterations == alone.iterations
+        assert out.converged == alone.converged
+        assert len(out.history) == len(alone.history)
+        np.testing.assert_allclose(out.history, alone.history, rtol=1e-9)
+        np.testing.assert_allclose(out.state.poses(), alone.state.poses(), atol=1e-9)
+        np.testing.assert_allclose(out.state.tprime, alone.state.tprime, atol=1e-9)
+        assert out.final.total == pytest.approx(alone.final.total, rel=1e-9)
+    assert len({o.iterations for o in together}) > 1  # the frames stopped at their own times
+
+
+def test_solving_frames_at_once_refuses_coupled_frames() -> None:
+    cam = _camera()
+    det = _detections(np.random.default_rng(1), cam, _curved_window(2)[0], 0, s2=0.0, s3=0.0)
+    prob = batch_fit._Problem(
+        num_frames=2,
+        correspondences=Correspondences.empty(),
+        detections=[dataclasses.replace(det, frame=k) for k in range(2)],
+        camera=cam,
+        shape=SHAPE,
+        options=BatchFitOptions(),  # one t′ shared by both frames
+        phi=np.zeros(15),
+        association_poses=np.zeros((2, 33)),
+    )
+    poses = np.zeros((2, 33))
+    state = batch_fit._state_from_poses(poses, np.zeros((1, 3)))
+    with pytest.raises(ValidationError, match="independent"):
+        batch_fit._levenberg_marquardt_frames(
+            prob, state, max_iterations=5, rtol=1e-8, mu_init=1e-3
+        )
 
 
 def test_fit_frame_without_3d_fits_the_2d_keypoints() -> None:
