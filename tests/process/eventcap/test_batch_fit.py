@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -509,7 +510,7 @@ def test_independent_frames_solved_at_once_match_one_solve_each(with_3d: bool) -
     starts = poses + rng.normal(0.0, 0.15, poses.shape) * (np.arange(33) < 6)
     starts[:, 3:6] += rng.normal(0.0, 0.3, (len(starts), 3))
     opts = BatchFitOptions(translation_3d="per_detection")
-    lm = {"max_iterations": 40, "rtol": 1e-8, "mu_init": 1e-3}
+    lm: dict[str, Any] = {"max_iterations": 40, "rtol": 1e-8, "mu_init": 1e-3}
 
     def problem(count: int) -> batch_fit._Problem:
         prob = batch_fit._Problem(
