@@ -990,6 +990,24 @@ class _LmOutcome:
     converged: bool
 
 
+def _marquardt_system(
+    h: torch.Tensor, g: torch.Tensor, free: torch.Tensor, mu: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The damped system of one LM step: ``h + μ·diag(d)`` with ``d`` Marquardt's scaling
+    (``h``'s diagonal floored at 1e-9 of its largest, 0 on held parameters), held rows and
+    columns made identity, and ``-g`` (0 where held, so δ = 0 there). ``h`` (..., m, m),
+    ``g`` and ``free`` (..., m), ``mu`` (...) -> ``(a, rhs, d)``."""
+    d = torch.diagonal(h, dim1=-2, dim2=-1)
+    d = torch.maximum(d, 1e-9 * d.amax(dim=-1, keepdim=True).clamp(min=1e-300))
+    d = torch.where(free, d, torch.zeros_like(d))
+    a = h + torch.diag_embed(mu[..., None] * d)
+    fixed = ~free
+    if bool(fixed.any()):
+        eye = torch.eye(h.shape[-1], dtype=h.dtype)
+        a = torch.where(fixed[..., :, None] | fixed[..., None, :], eye, a)
+    return a, torch.where(free, -g, torch.zeros_like(g)), d
+
+
 def _levenberg_marquardt(
     prob: _Problem, state: _State, *, max_iterations: int, rtol: float, mu_init: float
 ) -> _LmOutcome:
@@ -1009,20 +1027,11 @@ def _levenberg_marquardt(
     history = [terms.total]
     mu, nu = mu_init, 2.0
     free = prob.free
-    fixed = ~free
     converged = False
     it = 0
     while it < max_iterations:
         it += 1
-        d = torch.diagonal(h).clone()
-        d = torch.clamp(d, min=1e-9 * float(d.max().clamp(min=1e-300)))
-        d = torch.where(free, d, torch.zeros_like(d))
-        a = h + torch.diag(mu * d)
-        # Held parameters: identity rows and columns, zero right-hand side, so δ = 0 there.
-        a[fixed, :] = 0.0
-        a[:, fixed] = 0.0
-        a[fixed, fixed] = 1.0
-        rhs = torch.where(free, -g, torch.zeros_like(g))
+        a, rhs, d = _marquardt_system(h, g, free, torch.tensor(mu, dtype=torch.float64))
         step = prob.solve(a, rhs)
         if step is None:  # not positive definite: damp more
             mu, nu = mu * nu, nu * 2.0
@@ -1094,7 +1103,6 @@ def _levenberg_marquardt_frames(
         idx = torch.cat([idx, t_idx], dim=1)
     rows, cols = idx[:, :, None], idx[:, None, :]
     free = prob.free[idx]  # (F, m)
-    fixed = ~free
 
     def model(s: _State) -> tuple[torch.Tensor, torch.Tensor]:
         h_full, g_full, _ = prob.normal_equations(s)
@@ -1117,16 +1125,9 @@ def _levenberg_marquardt_frames(
     active = torch.ones(f_count, dtype=torch.bool)
     converged = torch.zeros(f_count, dtype=torch.bool)
     its = torch.zeros(f_count, dtype=torch.int64)
-    eye = torch.eye(idx.shape[1], dtype=torch.float64)
     while bool(active.any()):
         its += active.long()
-        d = torch.diagonal(h, dim1=1, dim2=2)
-        d = torch.maximum(d, 1e-9 * d.max(dim=1, keepdim=True).values.clamp(min=1e-300))
-        d = torch.where(free, d, torch.zeros_like(d))
-        a = h + torch.diag_embed(mu[:, None] * d)
-        # Held parameters: identity rows and columns, zero right-hand side, so δ = 0 there.
-        a = torch.where(fixed[:, :, None] | fixed[:, None, :], eye, a)
-        rhs = torch.where(free, -g, torch.zeros_like(g))
+        a, rhs, d = _marquardt_system(h, g, free, mu)
         chol, info = torch.linalg.cholesky_ex(a)
         ok = (info == 0) & active
         failed = (info != 0) & active
