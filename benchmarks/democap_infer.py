@@ -22,9 +22,11 @@ is shared: a load change then hits all of them alike):
 * ``live-before``: the 2-turn ensemble as it ran before the turns were batched
   (:class:`PerTurnPredictor`: one pass per turn, on a thread pool made per call): the
   "before" figure, timed in the same run;
+* ``live-solve``: the live ensemble with the skeleton solve (``democap live --solve``);
 * ``offline``: ``DemocapPredictor()`` as shipped for offline use (``DEFAULT_ROTATIONS``, 3
-  turns, one batched pass);
-* ``single``: the paper's single shot (``rotations=1``).
+  turns, one batched pass, then the skeleton solve from 4 starts);
+* ``offline-network``: the same without the solve (the network's own estimate);
+* ``single``: the paper's single shot (``rotations=1``, no solve).
 
 For each:
 
@@ -295,24 +297,34 @@ class PerTurnPredictor(DemocapPredictor):
 LITE_CONFIGS: dict[str, tuple[Callable[[Checkpoint], DemocapPredictor], int]] = {
     "live": (live_predictor, DEFAULT_WORKERS),
     "live-1thr": (
-        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, workers=1),
+        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, solve=False, workers=1),
         DEFAULT_WORKERS,
     ),
     "live-before": (
-        lambda c: PerTurnPredictor(c, rotations=LIVE_ROTATIONS, workers=LIVE_ROTATIONS),
+        lambda c: PerTurnPredictor(
+            c, rotations=LIVE_ROTATIONS, solve=False, workers=LIVE_ROTATIONS
+        ),
+        DEFAULT_WORKERS,
+    ),
+    "live-solve": (
+        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, workers=LIVE_ROTATIONS),
         DEFAULT_WORKERS,
     ),
     "offline": (DemocapPredictor, DEFAULT_WORKERS),
-    "single": (lambda c: DemocapPredictor(c, rotations=1), DEFAULT_WORKERS),
+    "offline-network": (lambda c: DemocapPredictor(c, solve=False), DEFAULT_WORKERS),
+    "single": (lambda c: DemocapPredictor(c, rotations=1, solve=False), DEFAULT_WORKERS),
 }
 PAPER_CONFIGS: dict[str, dict[str, Any]] = {
-    "paper": {"rotations": LIVE_ROTATIONS, "workers": LIVE_ROTATIONS},
-    "paper-single": {"rotations": 1},
+    "paper": {"rotations": LIVE_ROTATIONS, "workers": LIVE_ROTATIONS, "solve": False},
+    "paper-single": {"rotations": 1, "solve": False},
 }
 
 
 def _describe(p: DemocapPredictor, workers: int) -> str:
-    return f"{p.rotations} rotation(s) on {p.workers} thread(s), {workers} measuring thread(s)"
+    solve = " + skeleton solve" if p.solves else ""
+    return (
+        f"{p.rotations} rotation(s) on {p.workers} thread(s){solve}, {workers} measuring thread(s)"
+    )
 
 
 def main() -> int:
@@ -403,7 +415,7 @@ def main() -> int:
         "frames": len(sets),
         "rounds": args.rounds,
         "fps": med("live", "stream_fps"),
-        "target_fps": 30.0,
+        "target_fps": 36.0,
         "lite": {
             c: {
                 "config": _describe(pred, w),

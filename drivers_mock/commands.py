@@ -257,21 +257,33 @@ def _unseen_real_line(ur: dict[str, Any]) -> str:
         return "  DeMoCap unseen-real: not run (no motion corpus)"
     if "error" in ur:
         return f"  DeMoCap unseen-real: {ur['error']}"
-    inside = ur["inside_volume"]
-    inside_text = (
-        "no frame inside the view"
-        if inside["mpjpe_mm"] is None
-        else (
+
+    def inside_text(inside: dict[str, Any]) -> str:
+        if inside["mpjpe_mm"] is None:
+            return "no frame inside the view"
+        return (
             f"inside the view ({100 * inside['share']:.0f} % of frames) MPJPE "
             f"{inside['mpjpe_mm']:.1f} mm, PCK@50 {100 * inside['pck50']:.1f} %"
         )
-    )
-    return (
-        f"  DeMoCap [{ur['protocol']}] ({ur['config']}, corpus test split: {len(ur['clips'])} "
-        f"real clips of unseen performers, {ur['num_cameras']} cameras, {ur['rotations']}-turn "
-        f"ensemble, {ur['frames']} frames): {inside_text}; all frames {ur['mpjpe_mm']:.1f} mm, "
-        f"{100 * ur['pck50']:.1f} %"
-    )
+
+    solve = ", skeleton solve" if ur.get("solve") else ""
+    lines = [
+        (
+            f"  DeMoCap [{ur['protocol']}] ({ur['config']}, corpus test split: "
+            f"{len(ur['clips'])} real clips of unseen performers, {ur['num_cameras']} cameras, "
+            f"{ur['rotations']}-turn ensemble{solve}, {ur['frames']} frames): "
+            f"{inside_text(ur['inside_volume'])}; all frames {ur['mpjpe_mm']:.1f} mm, "
+            f"{100 * ur['pck50']:.1f} %"
+        )
+    ]
+    om = ur.get("off_model")
+    if om:
+        lines.append(
+            f"  DeMoCap [{om['protocol']}] (the same clips on subjects the body model does not "
+            f"mirror, {om['frames']} frames): {inside_text(om['inside_volume'])}; all frames "
+            f"{om['mpjpe_mm']:.1f} mm, {100 * om['pck50']:.1f} %"
+        )
+    return "\n".join(lines)
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -345,9 +357,11 @@ def _demo(args: argparse.Namespace) -> int:
         (
             f"  DeMoCap [{d['protocol']}] ({d['config']}, held-out simulated takes, 4 cameras, "
             f"{d['rotations']}-turn "
-            f"ensemble): MPJPE {d['mpjpe_mm']:.1f} mm, MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 "
-            f"{100 * d['pck50']:.1f} % (single shot: {d['single_shot_mpjpe_mm']:.1f} mm, "
-            f"{100 * d['single_shot_pck50']:.1f} %)"
+            f"ensemble{', skeleton solve' if d.get('solve') else ''}): MPJPE "
+            f"{d['mpjpe_mm']:.1f} mm, MPMPE {d['mpmpe_mm']:.1f} mm, PCK@50 "
+            f"{100 * d['pck50']:.1f} % (the network alone: {d['network_mpjpe_mm']:.1f} mm, "
+            f"{100 * d['network_pck50']:.1f} %; its single shot: "
+            f"{d['single_shot_mpjpe_mm']:.1f} mm, {100 * d['single_shot_pck50']:.1f} %)"
             if "error" not in d and d
             else f"  DeMoCap: {d.get('error', 'not run')}"
         ),

@@ -111,18 +111,23 @@ _IN_DISTRIBUTION_RECORDING = (
 
 def _unseen_real_figures(corpus_dir: Path, seed: int) -> dict[str, Any]:
     """The headline protocol on a small budget: the committed checkpoint on the corpus's test
-    split (real motion of performers it never saw), 4 cameras, its default ensemble; the
-    figures over the frames inside the cameras' view and over all frames."""
-    from mocaprig.process.democap.evaluate import unseen_real
+    split (real motion of performers it never saw), 4 cameras, its default inference
+    (ensemble and skeleton solve); the figures over the frames inside the cameras' view and
+    over all frames; then the same clips on subjects the body model does not mirror (the
+    ``off-model`` protocol, under ``"off_model"``)."""
+    from mocaprig.process.democap.evaluate import off_model, unseen_real
     from mocaprig.process.democap.infer import DemocapPredictor
 
     predictor = DemocapPredictor()
     res = unseen_real(predictor, corpus_dir, seed=seed, frames_per_clip=UNSEEN_REAL_FRAMES)
-    if res.report is None:
-        msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note}"
+    off = off_model(predictor, corpus_dir, seed=seed, frames_per_clip=UNSEEN_REAL_FRAMES)
+    if res.report is None or off.report is None:
+        msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note or off.note}"
         raise ProcessingError(msg)
     d = res.to_dict()
     inside = d["inside_volume"]
+    o = off.to_dict()
+    keys = ("frames", "share", "mpjpe_mm", "mpmpe_mm", "pck50")
     return {
         "protocol": res.protocol,
         "holds_out": res.holds_out,
@@ -133,17 +138,25 @@ def _unseen_real_figures(corpus_dir: Path, seed: int) -> dict[str, Any]:
         "config": predictor.checkpoint.config.name,
         "epochs": predictor.checkpoint.epoch,
         "rotations": predictor.rotations,
+        "solve": predictor.solves,
         "num_cameras": d["num_cameras"],
         "frames": d["frames"],
         "skipped_frames": d["skipped_frames"],
         "mpjpe_mm": d["mpjpe_mm"],
         "mpmpe_mm": d["mpmpe_mm"],
         "pck50": d["pck50"],
-        "inside_volume": {
-            k: inside[k] for k in ("frames", "share", "mpjpe_mm", "mpmpe_mm", "pck50")
-        },
+        "inside_volume": {k: inside[k] for k in keys},
         "per_clip_mm": d["per_action_mm"],
         "note": res.note,
+        "off_model": {
+            "protocol": off.protocol,
+            "holds_out": off.holds_out,
+            "frames": o["frames"],
+            "skipped_frames": o["skipped_frames"],
+            "mpjpe_mm": o["mpjpe_mm"],
+            "pck50": o["pck50"],
+            "inside_volume": {k: o["inside_volume"][k] for k in keys},
+        },
     }
 
 
@@ -189,6 +202,7 @@ def _replay_figures(
         "pck50": m.pck50,
         "checkpoint": result.checkpoint,
         "rotations": result.rotations,
+        "solve": result.solve,
         "seconds": s["seconds"],
         "timings_s": s["timings_s"],
         "protocol": "in-distribution",

@@ -64,6 +64,7 @@ from mocaprig.process.body.skeleton import (
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
+    "EULER_MAP",
     "EVENTCAP_KEYPOINTS",
     "EVENTCAP_KEYPOINT_JOINTS",
     "Kinematics",
@@ -78,6 +79,7 @@ __all__ = [
     "neutral_pose",
     "rotvec_to_matrix",
     "rotvec_to_matrix_torch",
+    "skew_torch",
     "t_pose",
     "within_limits",
 ]
@@ -134,6 +136,10 @@ def _build_euler_map() -> FloatArray:
 
 _EULER_MAP = _build_euler_map()
 _EULER_MAP.setflags(write=False)
+#: (27, 26, 3): the Euler angle (local X, Y, Z; ``R_local = Rx·Ry·Rz``) each DoF adds to each
+#: joint per radian of the DoF: the axis sign of the module table, ½ for the spine's two
+#: joints. Read-only.
+EULER_MAP: FloatArray = _EULER_MAP.reshape(NUM_DOF, len(JOINTS), 3)
 
 
 def _build_levels() -> tuple[tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]], ...]:
@@ -201,7 +207,8 @@ def rotvec_to_matrix(rotvec: npt.ArrayLike) -> FloatArray:
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 
-def _skew_torch(v: torch.Tensor) -> torch.Tensor:
+def skew_torch(v: torch.Tensor) -> torch.Tensor:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3): ``skew_torch(a) @ b = a × b``."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     o = torch.zeros_like(x)
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape[:-1], 3, 3)
@@ -223,7 +230,7 @@ def rotvec_to_matrix_torch(rotvec: torch.Tensor) -> torch.Tensor:
     a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
     half = torch.where(small, 1.0 - theta2 / 24.0, torch.sin(0.5 * theta) / (0.5 * theta))
     b = 0.5 * half * half
-    k = _skew_torch(rotvec)
+    k = skew_torch(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device).expand(k.shape)
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
@@ -304,8 +311,9 @@ def forward_kinematics_torch(
 
     Args:
         pose: pose vectors (..., 33) as in :func:`forward_kinematics`.
-        offsets: rest offsets (26, 3) m (differentiable, e.g. for shape fitting), or a
-            :class:`BodyShape` (converted to ``pose``'s dtype and device).
+        offsets: rest offsets (26, 3) m (differentiable, e.g. for shape fitting), or one
+            set per pose (..., 26, 3) broadcastable with ``pose``'s batch (a shape per
+            problem), or a :class:`BodyShape` (converted to ``pose``'s dtype and device).
 
     Returns:
         ``(positions (..., 26, 3) m, rotations (..., 26, 3, 3))``, world frame; matches
@@ -320,8 +328,8 @@ def forward_kinematics_torch(
     if isinstance(offsets, BodyShape):
         off = torch.as_tensor(rest_offsets(offsets), dtype=pose.dtype, device=pose.device)
     else:
-        if tuple(offsets.shape) != (len(JOINTS), 3):
-            msg = f"offsets must have shape ({len(JOINTS)}, 3), got {tuple(offsets.shape)}"
+        if tuple(offsets.shape[-2:]) != (len(JOINTS), 3):
+            msg = f"offsets must have shape (..., {len(JOINTS)}, 3), got {tuple(offsets.shape)}"
             raise ValidationError(msg)
         off = offsets.to(dtype=pose.dtype, device=pose.device)
     kw: dict[str, Any] = {"dtype": pose.dtype, "device": pose.device}
@@ -337,7 +345,7 @@ def forward_kinematics_torch(
         parent_rot = all_rots.index_select(-3, parent_rows)
         parent_pos = all_pos.index_select(-2, parent_rows)
         jidx = torch.as_tensor(idx, device=pose.device)
-        new_pos = parent_pos + (parent_rot @ off.index_select(0, jidx)[..., None])[..., 0]
+        new_pos = parent_pos + (parent_rot @ off.index_select(-2, jidx)[..., None])[..., 0]
         new_rot = parent_rot @ local.index_select(-3, jidx)
         all_rots = torch.cat([all_rots, new_rot], dim=-3)
         all_pos = torch.cat([all_pos, new_pos], dim=-2)

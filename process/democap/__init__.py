@@ -96,12 +96,14 @@ __all__ = [
 
 def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
     """Quick figures for ``mocaprig demo`` (a few seconds): the committed ``lite`` checkpoint
-    on a small held-out simulated test set (6 takes, 4 cameras), with the default rotation
-    ensemble and single shot (the paper's inference).
+    on a small held-out simulated test set (6 takes, 4 cameras), with the default inference
+    (rotation ensemble and skeleton solve), the network's own ensemble estimate (no solve)
+    and its single shot (the paper's inference).
 
     Returns:
         ``{"mpjpe_mm", "mpmpe_mm", "pck50", "mpjae_deg", "frames", "config", "epochs",
-        "rotations", "single_shot_mpjpe_mm", "single_shot_pck50"}``.
+        "rotations", "solve", "network_mpjpe_mm", "network_pck50", "single_shot_mpjpe_mm",
+        "single_shot_pck50"}``.
 
     Raises:
         ProcessingError: the committed checkpoint is missing or does not match.
@@ -114,13 +116,16 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
     m = evaluate(
         predictor, seed=seed, num_cameras=4, frames_per_take=frames_per_take, pool=pool
     ).metrics
-    single = evaluate(
-        DemocapPredictor(predictor.checkpoint, rotations=1),
-        seed=seed,
-        num_cameras=4,
-        frames_per_take=frames_per_take,
-        pool=pool,
-    ).metrics
+    network, single = (
+        evaluate(
+            DemocapPredictor(predictor.checkpoint, rotations=k, solve=False),
+            seed=seed,
+            num_cameras=4,
+            frames_per_take=frames_per_take,
+            pool=pool,
+        ).metrics
+        for k in (predictor.rotations, 1)
+    )
     return {
         "mpjpe_mm": m.mpjpe_mm,
         "mpmpe_mm": m.mpmpe_mm,
@@ -130,6 +135,9 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
         "config": predictor.checkpoint.config.name,
         "epochs": predictor.checkpoint.epoch,
         "rotations": predictor.rotations,
+        "solve": predictor.solves,
+        "network_mpjpe_mm": network.mpjpe_mm,
+        "network_pck50": network.pck50,
         "single_shot_mpjpe_mm": single.mpjpe_mm,
         "single_shot_pck50": single.pck50,
     }

@@ -43,7 +43,13 @@ examples:
 #: torch through the package, and ``mocaprig --help`` must stay fast).
 VARIANT_CHOICES = ("markers-to-pose", "pose", "markers+pose", "regression")
 #: ``evaluate.PROTOCOLS``, spelled out for the same reason (a test checks they agree).
-PROTOCOL_CHOICES = ("in-distribution", "unseen-real", "leave-one-activity-out", "perturbed")
+PROTOCOL_CHOICES = (
+    "in-distribution",
+    "unseen-real",
+    "off-model",
+    "leave-one-activity-out",
+    "perturbed",
+)
 
 _TRAIN_EPILOG = """\
 Training data is simulated on the fly (marker-level D415 model, see docs/democap.md) and is
@@ -82,11 +88,14 @@ _EVAL_EPILOG = """\
   unseen-real              the motion corpus's test split: real motion of performers never
                            trained on (the headline); clips the checkpoint trained on are
                            flagged and left out
+  off-model                the unseen-real clips on subjects the body model does not mirror
+                           (proportions x2, marker placement x2.5, 1.5 cm skin motion)
   leave-one-activity-out   per activity, its corpus clips not trained on; says whether the
                            activity itself was trained on
   perturbed                in-distribution takes with the D415 model's detection rate, noise,
-                           stray points and occlusion at 0.5x and 1.5x training's
-  all                      all four
+                           stray points and occlusion at 0.5x and 1.5x training's, then on
+                           subjects pushed off the body model
+  all                      all five
 --motion FILE.bvh (a BVH retargeted onto new subjects) and --freestyle (held-out random key
 poses) replace the protocol. Every figure is given over all frames and over the frames with
 the actor inside the volume the cameras see (with that share), and by the true torso's tilt
@@ -94,6 +103,9 @@ from the vertical (0-20, 20-40, 40-60 and past 60 degrees: a body bent over is t
 frames whose cloud has fewer than 2 points are skipped and counted. --frames is per take or
 clip (default per protocol: 40, 20, 10, 8), --subjects the bodies per clip (corpus) or rounds
 of the actions.
+The estimates are skeleton solves by default: the body model (pose, segment lengths, girth)
+fitted to the cloud from the network's estimates, the ensemble's and each turn's, the best fit
+kept; --no-solve scores the network's own estimates (the paper's output).
 MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm. Any variant's
 checkpoint can be evaluated; a pose baseline estimates no markers, so its MPMPE, RMSPMPE and
 MPJAE are reported as n/a (null with --json).
@@ -106,13 +118,15 @@ examples:
   mocaprig democap eval --all-cameras --json        4-, 3- and 2-camera figures
   mocaprig democap eval --motion ../shared/data/motion/cmu_131_02_scaled.bvh
   mocaprig democap eval --freestyle --json          random key poses never trained on
+  mocaprig democap eval --protocol unseen-real --no-solve --rotations 1   the paper's single shot
 """
 
 _RUN_EPILOG = """\
 Every D415 frame's device time is mapped onto the calibration's reference clock (Vicon) with
 that camera's clock mapping; frames within a quarter frame period form one rig instant (an
 instant seen by fewer cameras is still processed). Per instant: IR blobs + depth -> camera
-points -> world (calibration poses) -> capture-box crop -> 10 mm merge -> the network.
+points -> world (calibration poses) -> capture-box crop -> 10 mm merge -> the network -> the
+skeleton solve (the body model fitted to the cloud; --no-solve keeps the network's estimates).
 
 Outputs (none is replaced without --overwrite):
   results.mcap  Foxglove SceneUpdate on /democap/markers, /democap/joints (bones + names) and
@@ -328,6 +342,12 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         metavar="K",
         help="rotation ensemble size (default: %(default)s, the live setting; 1 = single shot)",
     )
+    lv.add_argument(
+        "--solve",
+        action="store_true",
+        help="fit the body model to each cloud (as the replay does; ~10x the network's time "
+        "on a CPU, so off by default live)",
+    )
     add_json_flag(lv)
     lv.set_defaults(func=democap_live)
 
@@ -359,6 +379,12 @@ def _add_rotations(parser: argparse.ArgumentParser) -> None:
         metavar="K",
         help="rotation ensemble size: the cloud turned by k*180/K deg about the vertical, "
         "K network passes, median (default: %(default)s; 1 = the paper's single shot)",
+    )
+    parser.add_argument(
+        "--no-solve",
+        action="store_true",
+        help="the network's estimates as they are, without fitting the body model to the "
+        "cloud (the paper's output; the solve is the default)",
     )
 
 
@@ -510,12 +536,14 @@ def democap_eval(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
-    single = special or args.protocol in ("in-distribution", "unseen-real")
+    single = special or args.protocol in ("in-distribution", "unseen-real", "off-model")
     if args.all_cameras and not single:
         msg = f"--all-cameras applies to one figure; protocol {args.protocol!r} gives several"
         raise ValidationError(msg)
     predictor = DemocapPredictor(
-        None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
+        None if args.ckpt is None else Path(args.ckpt),
+        rotations=args.rotations,
+        solve=not args.no_solve,
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)
@@ -590,6 +618,7 @@ def democap_eval(args: argparse.Namespace) -> int:
         or ("freestyle (held-out)" if args.freestyle else "procedural (held-out)"),
         "motion_trained_on": seen,
         "rotations": predictor.rotations,
+        "solve": predictor.solves,
         "seed": args.seed,
         "corpus": None if corpus is None else str(corpus),
         "trained_corpus_clips": sorted(predictor.checkpoint.train_motions),
@@ -670,7 +699,9 @@ def democap_run(args: argparse.Namespace) -> int:
         c3d=args.c3d,
         csv=args.csv,
         predictor=DemocapPredictor(
-            None if args.ckpt is None else Path(args.ckpt), rotations=args.rotations
+            None if args.ckpt is None else Path(args.ckpt),
+            rotations=args.rotations,
+            solve=not args.no_solve,
         ),
         every=args.every,
         overwrite=args.overwrite,
@@ -737,6 +768,7 @@ def democap_live(args: argparse.Namespace) -> int:
     predictor = DemocapPredictor(
         None if args.ckpt is None else Path(args.ckpt),
         rotations=args.rotations,
+        solve=args.solve,
         workers=args.rotations,
     )
     if args.mock and args.seconds > args.world_seconds:

@@ -25,7 +25,7 @@ from typing import Literal, get_args
 
 from mocaprig.errors import ValidationError
 from mocaprig.process.body import BvhClip, read_bvh
-from mocaprig.process.democap.dataset import pool_from_bvh
+from mocaprig.process.democap.dataset import NOMINAL_SUBJECTS, SubjectModel, pool_from_bvh
 from mocaprig.process.democap.simdata import PoseFrames
 
 __all__ = [
@@ -204,11 +204,17 @@ def read_corpus_clips(corpus_dir: Path, clips: Sequence[CorpusClip]) -> list[Bvh
 
 
 def corpus_pool(
-    clips: Sequence[BvhClip], seed: int, *, split: CorpusSplitName, subjects: int
+    clips: Sequence[BvhClip],
+    seed: int,
+    *,
+    split: CorpusSplitName,
+    subjects: int,
+    subject_model: SubjectModel = NOMINAL_SUBJECTS,
 ) -> list[PoseFrames]:
     """Takes of corpus clips on ``subjects`` bodies each, from ``split``'s body seed stream
     (clip *i* gets bodies ``i·subjects`` ... ``i·subjects + subjects - 1``, so no two clips share
-    a body), each clip centred on the rig (:func:`dataset.pool_from_bvh` with ``centre=True``).
+    a body), each clip centred on the rig (:func:`dataset.pool_from_bvh` with ``centre=True``);
+    ``subject_model`` draws the bodies (default: the nominal ones).
 
     Raises:
         ValidationError: ``subjects`` < 1.
@@ -216,6 +222,12 @@ def corpus_pool(
     pool: list[PoseFrames] = []
     for i, clip in enumerate(clips):
         pool += pool_from_bvh(
-            clip, seed, subjects=subjects, split=split, centre=True, first_body=i * subjects
+            clip,
+            seed,
+            subjects=subjects,
+            split=split,
+            centre=True,
+            first_body=i * subjects,
+            subject_model=subject_model,
         )
     return pool

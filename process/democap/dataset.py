@@ -64,9 +64,11 @@ from mocaprig.process.democap.simdata import (
 )
 
 __all__ = [
+    "NOMINAL_SUBJECTS",
     "TRAIN_ACTIONS",
     "Batch",
     "Sample",
+    "SubjectModel",
     "make_batch",
     "make_pool",
     "make_sample",
@@ -90,8 +92,94 @@ RATE_HZ = 30.0
 _SPLIT_KEY = {"train": 0, "test": 1, "validation": 4}
 #: Seed streams of BVH takes (the held-out one predates the training one).
 _BVH_KEY = {"train": 3, "test": 2, "validation": 5}
+#: Seed-stream key of the soft-tissue displacements (SubjectModel.soft_tissue_m), apart from
+#: the take's own stream so that the takes stay the same.
+_SKIN_KEY = 6
 #: make_batch gives up after this many frames in a row without a usable cloud.
 _MAX_REDRAWS = 200
+
+
+@dataclass(frozen=True, slots=True)
+class SubjectModel:
+    """How far the simulated subjects depart from the body model, for stress tests (the
+    defaults: the bodies training and the nominal test sets draw, :data:`NOMINAL_SUBJECTS`).
+
+    A real subject is not one of our bodies: their proportions stray further from Drillis &
+    Contini, markers are stuck on by hand, and the skin slides over the bone as they move.
+    None of this is told to the estimator.
+
+    Attributes:
+        proportions: scales the spreads of :meth:`BodyShape.sample` about its centre: the
+            height range (1.75 ± 0.20 m), each segment's ±5 % and each radius's ±5 %, and
+            the girth range (0.9-1.15); 2 doubles them all.
+        placement: scales the marker placement jitter along the skin (σ = 1 cm).
+        soft_tissue_m: σ of a fresh displacement of every marker along the skin in every
+            frame (m; 0 nominal): skin and suit moving over the bone.
+
+    Raises:
+        ValidationError: a negative value, or ``proportions`` so large that a sampled body
+            would have non-positive segments (above 5).
+    """
+
+    proportions: float = 1.0
+    placement: float = 1.0
+    soft_tissue_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("proportions", "placement", "soft_tissue_m"):
+            if not float(getattr(self, name)) >= 0.0:
+                msg = f"SubjectModel.{name} must be >= 0, got {getattr(self, name)!r}"
+                raise ValidationError(msg)
+        if self.proportions > 5.0:
+            msg = f"SubjectModel.proportions must be <= 5, got {self.proportions!r}"
+            raise ValidationError(msg)
+
+    @property
+    def is_nominal(self) -> bool:
+        """Whether these are the bodies training draws."""
+        return self == NOMINAL_SUBJECTS
+
+    def body(self, rng: np.random.Generator) -> tuple[BodyShape, MarkerSet]:
+        """A subject and their markers. The random numbers drawn do not depend on the scales
+        (a scaled pool holds the same takes on other bodies), except that a body on which a
+        marker cannot be placed (wide proportions make one in 200 at ×2) is drawn again.
+
+        Raises:
+            ProcessingError: 20 draws in a row gave such bodies (proportions far too wide).
+        """
+        p = self.proportions
+        for _ in range(20):
+            # The nominal call as it always was, so nominal pools stay bit for bit the same.
+            shape = (
+                BodyShape.sample(rng)
+                if p == 1.0
+                else BodyShape.sample(
+                    rng,
+                    height_range_m=(1.75 - 0.20 * p, 1.75 + 0.20 * p),
+                    segment_variation=min(0.05 * p, 0.3),
+                    girth_range=(1.025 - 0.125 * p, 1.025 + 0.125 * p),
+                    radius_variation=min(0.05 * p, 0.3),
+                )
+            )
+            try:
+                markers = MarkerSet.for_shape(shape)
+            except ProcessingError:
+                continue
+            return shape, markers.jittered(rng, sigma_m=0.01 * self.placement)
+        msg = f"SubjectModel(proportions={p}): 20 sampled bodies could not carry the markers"
+        raise ProcessingError(msg)
+
+    def moved(self, frames: PoseFrames, rng: np.random.Generator) -> PoseFrames:
+        """``frames`` with every marker moved along the skin by ``soft_tissue_m`` per frame."""
+        if self.soft_tissue_m == 0.0:
+            return frames
+        g = rng.normal(0.0, self.soft_tissue_m, frames.markers_m.shape)
+        g -= np.sum(g * frames.normals, axis=-1, keepdims=True) * frames.normals
+        return replace(frames, markers_m=frames.markers_m + g)
+
+
+#: The bodies training and the nominal test sets draw.
+NOMINAL_SUBJECTS = SubjectModel()
 
 
 def _offset_motion(motion: Motion, rng: np.random.Generator, max_deg: float) -> Motion:
@@ -118,11 +206,13 @@ def make_pool(
     takes: int,
     seconds: float = 6.0,
     actions: Sequence[str] | None = None,
+    subjects: SubjectModel = NOMINAL_SUBJECTS,
 ) -> list[PoseFrames]:
     """``takes`` takes from the ``split`` seed stream, cycling through :data:`TRAIN_ACTIONS`
     (``"train"``: then three ``freestyle`` takes of random key poses per cycle) or through
     ``actions`` (procedural motion names) when given. ``"validation"`` and ``"test"`` take
     the scored actions without the training pose offsets, from streams of their own.
+    ``subjects`` draws the bodies (default: the nominal ones).
 
     Raises:
         ValidationError: ``takes`` < 1, an unknown split or an unknown or empty action list.
@@ -134,14 +224,14 @@ def make_pool(
     pool = []
     for k in range(takes):
         rng = np.random.default_rng([seed, _SPLIT_KEY[split], k])
-        shape = BodyShape.sample(rng)
-        markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
+        shape, markers = subjects.body(rng)
         cycle = actions or (_TRAIN_CYCLE if split == "train" else TRAIN_ACTIONS)
         action = cycle[k % len(cycle)]
         motion = make_motion(action, seconds=seconds, rng=rng, rate_hz=RATE_HZ, shape=shape)
         if split == "train":
             motion = _offset_motion(motion, rng, 12.0)
-        pool.append(pose_frames(motion, shape, markers))
+        skin = np.random.default_rng([seed, _SPLIT_KEY[split], k, _SKIN_KEY])
+        pool.append(subjects.moved(pose_frames(motion, shape, markers), skin))
     return pool
 
 
@@ -159,6 +249,7 @@ def pool_from_bvh(
     split: Split = "test",
     centre: bool = False,
     first_body: int = 0,
+    subject_model: SubjectModel = NOMINAL_SUBJECTS,
 ) -> list[PoseFrames]:
     """Takes of a BVH clip on ``subjects`` new bodies: the clip is thinned to about 30 Hz and
     retargeted onto each body (:func:`mocaprig.process.body.retarget_bvh`). ``"test"``: held-out
@@ -168,7 +259,7 @@ def pool_from_bvh(
     centre (the corpus clips: a capture is made where the cameras look; without it a clip keeps
     the position it was recorded at). The bodies are numbers ``first_body`` ...
     ``first_body + subjects - 1`` of the split's stream (callers with many clips give each clip
-    bodies of its own).
+    bodies of its own). ``subject_model`` draws the bodies (default: the nominal ones).
 
     Raises:
         ValidationError: ``subjects`` < 1, a negative ``first_body`` or an unknown split.
@@ -182,12 +273,13 @@ def pool_from_bvh(
     out = []
     for k in range(first_body, first_body + subjects):
         rng = np.random.default_rng([seed, _BVH_KEY[split], k])
-        shape = BodyShape.sample(rng)
-        markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.01)
+        shape, markers = subject_model.body(rng)
         motion = retarget_bvh(thin, shape)
         if centre:
             motion = _centred(motion)
-        out.append(pose_frames(motion.with_name(clip.name), shape, markers))
+        skin = np.random.default_rng([seed, _BVH_KEY[split], k, _SKIN_KEY])
+        frames = pose_frames(motion.with_name(clip.name), shape, markers)
+        out.append(subject_model.moved(frames, skin))
     return out
 
 

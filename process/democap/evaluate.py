@@ -20,10 +20,15 @@ The protocols (:data:`PROTOCOLS`, :func:`run_protocol`), each labelled with what
 * ``leave-one-activity-out``: the corpus clips of each activity (train and test splits; the
   validation split is for model selection and never reported), without the clips the
   checkpoint was trained on; each activity says whether any clip of it was trained on;
+* ``off-model``: the ``unseen-real`` clips on subjects the body model does not mirror
+  (:data:`OFF_MODEL_SUBJECTS`: proportions spread twice as wide, markers placed 2.5× as
+  loosely, the skin sliding 1.5 cm over the bone in every frame; :class:`dataset.SubjectModel`):
+  what a body-model fit such as the skeleton solve is worth on people who are not our bodies;
 * ``perturbed``: the ``in-distribution`` takes seen through the D415 model with its detection
   rate, noise, stray points and occlusion each pushed to 0.5× and 1.5× the values training
   uses (:class:`simdata.ObservationModel`), one knob at a time, then all four together the
-  harder way and the easier way.
+  harder way and the easier way; then the subjects pushed off the body model, one way at a
+  time and all together (:data:`BODY_PERTURBATIONS`).
 
 Metrics (:mod:`mocaprig.process.metrics`): joints over the paper's 17 evaluation joints (the two toe
 joints left out, democap-method.md §5), markers over all 53. MPJAE uses segment orientations
@@ -57,7 +62,13 @@ from mocaprig.process.democap.corpus import (
     load_split,
     read_corpus_clips,
 )
-from mocaprig.process.democap.dataset import make_pool, pool_from_bvh, simulate_sample
+from mocaprig.process.democap.dataset import (
+    NOMINAL_SUBJECTS,
+    SubjectModel,
+    make_pool,
+    pool_from_bvh,
+    simulate_sample,
+)
 from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.simdata import (
     NOMINAL_OBSERVATION,
@@ -69,7 +80,9 @@ from mocaprig.process.democap.simdata import (
 from mocaprig.process.metrics import PoseMetrics, per_group_mean, point_errors, pose_metrics
 
 __all__ = [
+    "BODY_PERTURBATIONS",
     "EVAL_JOINTS",
+    "OFF_MODEL_SUBJECTS",
     "PERTURBATION_SCALES",
     "PROTOCOLS",
     "SEGMENTS",
@@ -80,6 +93,7 @@ __all__ = [
     "evaluate",
     "held_out_pool",
     "leave_one_activity_out",
+    "off_model",
     "perturbed",
     "run_protocol",
     "segment_quaternions",
@@ -91,11 +105,23 @@ _log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
-Protocol = Literal["in-distribution", "unseen-real", "leave-one-activity-out", "perturbed"]
+Protocol = Literal[
+    "in-distribution", "unseen-real", "off-model", "leave-one-activity-out", "perturbed"
+]
 #: The evaluation protocols (module doc).
 PROTOCOLS: tuple[Protocol, ...] = get_args(Protocol)
 #: The ``perturbed`` protocol's scales on each observation-model knob (±50 %).
 PERTURBATION_SCALES: tuple[float, ...] = (0.5, 1.5)
+#: Subjects the body model does not mirror (the ``off-model`` protocol, the last of
+#: :data:`BODY_PERTURBATIONS`).
+OFF_MODEL_SUBJECTS = SubjectModel(proportions=2.0, placement=2.5, soft_tissue_m=0.015)
+#: The ``perturbed`` protocol's subjects: one way off the body model at a time, then all.
+BODY_PERTURBATIONS: tuple[tuple[str, SubjectModel], ...] = (
+    ("body proportions x2", SubjectModel(proportions=2.0)),
+    ("marker placement x2.5", SubjectModel(placement=2.5)),
+    ("skin motion 1.5 cm", SubjectModel(soft_tissue_m=0.015)),
+    ("body all off", OFF_MODEL_SUBJECTS),
+)
 
 #: Indices (into DEMOCAP_JOINTS) of the 17 joints the paper evaluates (no toes).
 EVAL_JOINTS: tuple[int, ...] = tuple(
@@ -239,19 +265,28 @@ def held_out_pool(
     motion: BvhClip | None = None,
     subjects: int = 1,
     freestyle: bool = False,
+    subject_model: SubjectModel = NOMINAL_SUBJECTS,
 ) -> list[PoseFrames]:
     """The held-out takes :func:`evaluate` uses: ``subjects`` rounds of the six procedural
     actions (4 s each, a new subject per take), or ``motion`` on ``subjects`` new bodies, or
     (``freestyle``) ``subjects`` × 6 takes of random key poses from the test stream (poses
-    never trained on: the training takes draw other keys)."""
+    never trained on: the training takes draw other keys); ``subject_model`` draws the
+    bodies."""
     if freestyle and motion is not None:
         msg = "pass either a BVH motion or freestyle, not both"
         raise ValidationError(msg)
     if freestyle:
-        return make_pool(seed, "test", takes=subjects * 6, seconds=4.0, actions=("freestyle",))
+        return make_pool(
+            seed,
+            "test",
+            takes=subjects * 6,
+            seconds=4.0,
+            actions=("freestyle",),
+            subjects=subject_model,
+        )
     if motion is None:
-        return make_pool(seed, "test", takes=subjects * 6, seconds=4.0)
-    return pool_from_bvh(motion, seed, subjects=subjects)
+        return make_pool(seed, "test", takes=subjects * 6, seconds=4.0, subjects=subject_model)
+    return pool_from_bvh(motion, seed, subjects=subjects, subject_model=subject_model)
 
 
 def _metrics(
@@ -441,9 +476,17 @@ _HOLDS_OUT = {
         "real captured motion of performers whose clips are in no training or validation "
         "split (the corpus test split, retargeted onto new bodies)"
     ),
+    "off-model": (
+        "real captured motion of performers in no training or validation split, on subjects "
+        "the body model does not mirror (proportions x2, marker placement x2.5, 1.5 cm skin "
+        "motion)"
+    ),
     "perturbed": (
         "the observation model: in-distribution takes seen with a D415 model pushed away "
         "from training's"
+    ),
+    "perturbed-body": (
+        "the subjects: in-distribution takes on bodies pushed away from the body model"
     ),
 }
 
@@ -461,14 +504,17 @@ def unseen_real(
     num_cameras: int = 4,
     subjects: int = 1,
     frames_per_clip: int = 20,
+    subject_model: SubjectModel = NOMINAL_SUBJECTS,
 ) -> ProtocolResult:
     """The ``unseen-real`` protocol: the corpus test split on ``subjects`` new bodies per clip,
     ``frames_per_clip`` frames each, without the clips the checkpoint was trained on (flagged
-    in ``trained_clips``).
+    in ``trained_clips``); with ``subject_model`` other than the nominal one, the
+    ``off-model`` protocol (:func:`off_model`).
 
     Raises:
         ValidationError: the corpus folder or one of its test clips is missing.
     """
+    name = "unseen-real" if subject_model.is_nominal else "off-model"
     table = split or load_split()
     trained = set(predictor.checkpoint.train_motions)
     clips = table.in_split("test")
@@ -478,16 +524,22 @@ def unseen_real(
     if not use:
         note = "every test clip was trained on: no held-out figure"
         return ProtocolResult(
-            "unseen-real",
-            "unseen-real",
-            _HOLDS_OUT["unseen-real"],
+            name,
+            name,
+            _HOLDS_OUT[name],
             None,
             trained_clips=flagged,
             trained_on=True,
             budget=budget,
             note=note,
         )
-    pool = corpus_pool(read_corpus_clips(corpus_dir, use), seed, split="test", subjects=subjects)
+    pool = corpus_pool(
+        read_corpus_clips(corpus_dir, use),
+        seed,
+        split="test",
+        subjects=subjects,
+        subject_model=subject_model,
+    )
     rep = evaluate(
         predictor, seed=seed, num_cameras=num_cameras, frames_per_take=frames_per_clip, pool=pool
     )
@@ -495,14 +547,42 @@ def unseen_real(
     if flagged:
         note = f"left out, trained on: {', '.join(flagged)}"
     return ProtocolResult(
-        "unseen-real",
-        "unseen-real",
-        _HOLDS_OUT["unseen-real"],
+        name,
+        name,
+        _HOLDS_OUT[name],
         rep,
         clips=tuple(c.name for c in use),
         trained_clips=flagged,
         budget=budget,
         note=note,
+    )
+
+
+def off_model(
+    predictor: DemocapPredictor,
+    corpus_dir: Path,
+    *,
+    split: CorpusSplit | None = None,
+    seed: int = 0,
+    num_cameras: int = 4,
+    subjects: int = 1,
+    frames_per_clip: int = 20,
+) -> ProtocolResult:
+    """The ``off-model`` protocol: :func:`unseen_real` on :data:`OFF_MODEL_SUBJECTS`, bodies
+    the body model does not mirror (the estimator is not told).
+
+    Raises:
+        ValidationError: the corpus folder or one of its test clips is missing.
+    """
+    return unseen_real(
+        predictor,
+        corpus_dir,
+        split=split,
+        seed=seed,
+        num_cameras=num_cameras,
+        subjects=subjects,
+        frames_per_clip=frames_per_clip,
+        subject_model=OFF_MODEL_SUBJECTS,
     )
 
 
@@ -593,11 +673,14 @@ def perturbed(
     subjects: int = 1,
     frames_per_take: int = 8,
     scales: Sequence[float] = PERTURBATION_SCALES,
+    bodies: bool = True,
 ) -> list[ProtocolResult]:
     """The ``perturbed`` protocol: the ``in-distribution`` takes of ``seed`` through the D415
     model with each knob (:data:`simdata.PERTURBATION_KNOBS`) at each of ``scales``, one knob
     at a time, then all knobs together the harder way (``"all harder"``: detection at the
-    smallest scale, noise, strays and occlusion at the largest) and the easier way."""
+    smallest scale, noise, strays and occlusion at the largest) and the easier way; then
+    (``bodies``) the same takes on subjects pushed off the body model
+    (:data:`BODY_PERTURBATIONS`), one way at a time and all together."""
     pool = held_out_pool(seed, subjects=subjects)
     budget = _budget(frames_per_take, subjects, seed)
     runs: list[tuple[str, ObservationModel]] = [
@@ -621,6 +704,17 @@ def perturbed(
             observation=model,
         )
         out.append(ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget))
+    for label, subject_model in BODY_PERTURBATIONS if bodies else ():
+        rep = evaluate(
+            predictor,
+            seed=seed,
+            num_cameras=num_cameras,
+            frames_per_take=frames_per_take,
+            pool=held_out_pool(seed, subjects=subjects, subject_model=subject_model),
+        )
+        out.append(
+            ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed-body"], rep, budget=budget)
+        )
     return out
 
 
@@ -635,8 +729,8 @@ def run_protocol(
     frames: int | None = None,
 ) -> list[ProtocolResult]:
     """One protocol's labelled figures. ``frames`` per take or clip (default: 40 for
-    ``in-distribution``, 20 for ``unseen-real``, 10 for ``leave-one-activity-out``, 8 per
-    perturbation).
+    ``in-distribution``, 20 for ``unseen-real`` and ``off-model``, 10 for
+    ``leave-one-activity-out``, 8 per perturbation).
 
     Raises:
         ValidationError: an unknown protocol, or a corpus protocol without ``corpus_dir``.
@@ -671,7 +765,7 @@ def run_protocol(
             "pass its folder"
         )
         raise ValidationError(msg)
-    if protocol == "unseen-real":
+    if protocol in ("unseen-real", "off-model"):
         return [
             unseen_real(
                 predictor,
@@ -680,6 +774,7 @@ def run_protocol(
                 num_cameras=num_cameras,
                 subjects=subjects,
                 frames_per_clip=frames or 20,
+                subject_model=NOMINAL_SUBJECTS if protocol == "unseen-real" else OFF_MODEL_SUBJECTS,
             )
         ]
     return leave_one_activity_out(

@@ -18,6 +18,13 @@ convolution's batch norm folded into its weights, in channels-last memory layout
 function (outputs within float32 rounding), about a quarter less time on a CPU. The
 checkpoint's own model is left as it is (training and resuming use it).
 
+**Skeleton solve** (``solve=True``, the default): the body model is fitted to the cloud
+from the ensemble's estimate and from each turn's (:mod:`.solve`); the fit that explains the
+cloud best gives the markers and joints, and the solved pose and height come with them. With
+``rotations=1`` the single estimate is the one start. Off (``solve=False``) the estimates are
+the network's alone (the paper's output; live use at a high frame rate). The ``"pose"``
+baseline has no markers to fit: it is never solved.
+
 **Batched turns** (``workers=1``, the default): the front/back views of every turn (and every
 cloud) go through the network as one batch, ``2·K·B`` views: one pass instead of K, which on a
 CPU costs about 15 % less than K passes of 2 views (fewer per-operation overheads for the
@@ -54,6 +61,7 @@ from mocaprig.process.democap.model import (
     fuse_views_torch,
     view_keypoints,
 )
+from mocaprig.process.democap.solve import SolveOptions, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
@@ -85,6 +93,10 @@ class Prediction:
 
     markers_m: FloatArray
     joints_m: FloatArray
+    #: the solved body's pose vector (33,) (:mod:`process.body.skeleton`), None unsolved
+    pose: FloatArray | None = None
+    #: the solved body's standing height, m; None unsolved
+    height_m: float | None = None
 
 
 def decode(
@@ -145,6 +157,9 @@ class DemocapPredictor:
             (the fastest: live use at a high frame rate).
         combine: how the K estimates are combined per coordinate.
         optimise: run the folded, channels-last inference copy of the network (module doc).
+        solve: fit the body model to the cloud from the network's estimates (module doc);
+            ignored for a network without markers (the ``"pose"`` baseline).
+        solve_options: the solve's weights and schedule (default :class:`SolveOptions`).
         workers: how many network passes the K turns are split into, run at once: 1 (the
             default) puts the front/back views of all turns in one batch on the calling
             thread (the least work); ``W`` > 1 makes ``min(W, K)`` batches of consecutive
@@ -165,6 +180,8 @@ class DemocapPredictor:
         rotations: int = DEFAULT_ROTATIONS,
         combine: Combine = "median",
         optimise: bool = True,
+        solve: bool = True,
+        solve_options: SolveOptions | None = None,
         workers: int = 1,
     ) -> None:
         self._turns = ensemble_rotations(int(rotations))
@@ -192,6 +209,9 @@ class DemocapPredictor:
         self._pool_lock = threading.Lock()
         #: whether the network estimates the markers (not the ``"pose"`` baseline)
         self.predicts_markers = ckpt.config.predicts_markers
+        #: whether the estimates are solved skeletons (module doc)
+        self.solves = bool(solve) and self.predicts_markers
+        self.solve_options = solve_options or SolveOptions()
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 
@@ -240,9 +260,13 @@ class DemocapPredictor:
                 self._pool = pool
             return self._pool
 
-    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
-        """Several clouds, all turns of the ensemble in one network batch per worker (module
-        doc): the batch holds 2 · B views per turn.
+    def hypotheses(
+        self, clouds: Sequence[npt.ArrayLike]
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The network's estimates of several clouds, before any solve: the combined
+        ensemble's markers (B, 53, 3) and joints (B, 19, 3), then each turn's markers
+        (K, B, 53, 3) and joints (K, B, 19, 3), world frame, m. All turns of all clouds go
+        through one network batch per worker (module doc); ``last_timings_s`` has the stages.
 
         Raises:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
@@ -253,8 +277,15 @@ class DemocapPredictor:
             np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64)
             for c in clouds
         ]
+        k, n, s = len(self._turns), len(points), self.size_px
         if not points:
-            return []
+            nm, nj = self.net.num_markers, self.net.num_joints
+            return (
+                np.zeros((0, nm, 3)),
+                np.zeros((0, nj, 3)),
+                np.zeros((k, 0, nm, 3)),
+                np.zeros((k, 0, nj, 3)),
+            )
         fronts, backs = [], []
         boxes: list[list[tuple[Normalisation, FloatArray]]] = []
         for rot in self._turns:
@@ -265,7 +296,6 @@ class DemocapPredictor:
                 backs.append(b)
                 box.append((norm, centre))
             boxes.append(box)
-        k, n, s = len(self._turns), len(points), self.size_px
         front_t = torch.from_numpy(np.stack(fronts)).reshape(k, n, 1, s, s)
         back_t = torch.from_numpy(np.stack(backs)).reshape(k, n, 1, s, s)
         t1 = time.perf_counter()
@@ -280,7 +310,40 @@ class DemocapPredictor:
                 jt[t, i] = to_world_frame(norm.invert(j[t, i]) @ rot + centre)
         reduce = np.median if self.combine == "median" else np.mean
         markers, joints = reduce(mk, axis=0), reduce(jt, axis=0)
-        out = [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(len(points))]
         t3 = time.perf_counter()
         self.last_timings_s = {"render_s": t1 - t0, "network_s": t2 - t1, "decode_s": t3 - t2}
-        return out
+        return markers, joints, mk, jt
+
+    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
+        """Several clouds: the network's estimates (:meth:`hypotheses`), then the skeleton
+        solve from them when :attr:`solves`.
+
+        Raises:
+            ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
+                than 2 points.
+        """
+        points = [
+            np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64)
+            for c in clouds
+        ]
+        if not points:
+            return []
+        markers, joints, mk, jt = self.hypotheses(points)
+        n, k = len(points), len(self._turns)
+        if not self.solves:
+            return [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(n)]
+        t3 = time.perf_counter()
+        # The starts: the combined estimate, then each turn's (a single turn is the one start).
+        hyp_m = markers[None] if k == 1 else np.concatenate([markers[None], mk])
+        hyp_j = joints[None] if k == 1 else np.concatenate([joints[None], jt])
+        sol = solve_skeleton(points, hyp_m, hyp_j, options=self.solve_options)
+        self.last_timings_s["solve_s"] = time.perf_counter() - t3
+        return [
+            Prediction(
+                markers_m=sol.markers_m[i],
+                joints_m=sol.joints_m[i],
+                pose=sol.poses[i],
+                height_m=float(sol.height_m[i]),
+            )
+            for i in range(n)
+        ]

@@ -145,7 +145,8 @@ def live_predictor(
 ) -> DemocapPredictor:
     """The predictor for live use: :data:`LIVE_ROTATIONS` turns as two network passes at once
     (``workers`` = 2: the first turn on the calling thread, the second on the predictor's own
-    thread). On an idle 2-core machine this is the fastest live setting (37 fps end to end
+    thread), the network's estimates without the skeleton solve (its cost is an offline
+    one). On an idle 2-core machine this is the fastest live setting (37 fps end to end
     against 34 for the turns batched on one thread, in one run); on a machine whose second
     core is busy, ``DemocapPredictor(rotations=2, workers=1)`` (one batched pass) does less
     work per set (docs/democap.md, "Speed"). ``checkpoint`` None is the committed ``lite`` one.
@@ -154,7 +155,9 @@ def live_predictor(
         ProcessingError: the checkpoint is missing or does not match.
         ValidationError: ``rotations`` < 1.
     """
-    return DemocapPredictor(checkpoint, rotations=rotations, workers=min(2, max(1, rotations)))
+    return DemocapPredictor(
+        checkpoint, rotations=rotations, solve=False, workers=min(2, max(1, rotations))
+    )
 
 
 # ------------------------------------------------------------------------------ cameras

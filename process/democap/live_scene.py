@@ -122,7 +122,7 @@ class DemocapLiveScene:
         if predictor is None:
             from mocaprig.process.democap.infer import DemocapPredictor
 
-            predictor = DemocapPredictor(rotations=2, workers=1)
+            predictor = DemocapPredictor(rotations=2, solve=False, workers=1)
         self._pipeline = LivePipeline(predictor, self._cams, workers=1)
         self.stats = LiveSceneStats()
         # Shared between the writer thread (offer), the worker and the publisher (take).

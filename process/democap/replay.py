@@ -167,6 +167,8 @@ class ReplayResult:
         world_frame: The calibration's world frame.
         checkpoint: ``"<config> (<epochs> epochs)"`` of the network used.
         rotations: size of the rotation ensemble used (1: single shot).
+        solve: whether the estimates are skeleton solves (:mod:`.solve`; else the
+            network's own).
         timings_s: Wall seconds per stage (``measure_s``, ``network_s``, ``write_s``,
             ``total_s``; summed over spans when the replay ran in spans).
         clouds_m: The N fused input clouds ``(Mi, 3)`` (world, m); empty when not kept.
@@ -189,6 +191,7 @@ class ReplayResult:
     world_frame: str = "vicon"
     checkpoint: str = ""
     rotations: int = 1
+    solve: bool = False
     timings_s: Mapping[str, float] = field(default_factory=dict)
     clouds_m: tuple[F64, ...] = field(default=(), repr=False)
 
@@ -227,6 +230,7 @@ class ReplayResult:
             "world_frame": self.world_frame,
             "checkpoint": self.checkpoint,
             "rotations": self.rotations,
+            "solve": self.solve,
             "outputs": {k: str(v) for k, v in self.outputs.items()},
             "seconds": self.timings_s.get("total_s"),
             "timings_s": dict(self.timings_s),
@@ -412,6 +416,7 @@ class ReplaySpan:
         measure_s, network_s: Seconds spent measuring + merging, and in the network.
         checkpoint: ``"<config> (<epochs> epochs)"`` of the network.
         rotations: Size of its rotation ensemble.
+        solve: Whether its estimates are skeleton solves.
     """
 
     start: int
@@ -426,6 +431,7 @@ class ReplaySpan:
     network_s: float = 0.0
     checkpoint: str = ""
     rotations: int = 1
+    solve: bool = False
 
 
 def _check_every(every: int) -> None:
@@ -608,6 +614,7 @@ def replay_span(
         network_s=t_network,
         checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
         rotations=pred.rotations,
+        solve=bool(getattr(pred, "solves", False)),
     )
 
 
@@ -635,7 +642,7 @@ def join_spans(
     if not tiles or any(a[1] != b[0] for a, b in pairwise(edges)):
         msg = f"spans {edges} do not cover the plan's {len(plan.instants)} instants once"
         raise ValidationError(msg)
-    nets = {(s.checkpoint, s.rotations) for s in ordered}
+    nets = {(s.checkpoint, s.rotations, s.solve) for s in ordered}
     if len(nets) != 1:
         msg = f"the spans were processed by different networks: {sorted(nets)}"
         raise ValidationError(msg)
@@ -649,7 +656,7 @@ def join_spans(
             "points after the merge; are the markers lit and inside the capture box?"
         )
         raise ProcessingError(msg)
-    checkpoint, rotations = nets.pop()
+    checkpoint, rotations, solve = nets.pop()
     return ReplayResult(
         session=plan.session,
         outputs=dict(outputs),
@@ -668,6 +675,7 @@ def join_spans(
         world_frame=plan.world_frame,
         checkpoint=checkpoint,
         rotations=rotations,
+        solve=solve,
         clouds_m=clouds,
         timings_s={
             "measure_s": sum(s.measure_s for s in ordered),
@@ -1053,6 +1061,7 @@ def _metadata(result: ReplayResult) -> dict[str, str]:
         "world_frame": result.world_frame,
         "checkpoint": result.checkpoint,
         "rotations": str(result.rotations),
+        "solve": str(result.solve).lower(),
         "instants_by_camera_count": ",".join(
             f"{k}:{v}" for k, v in result.camera_histogram.items()
         ),

@@ -65,6 +65,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from mocaprig.calib.camera_model import project_camera_torch
 from mocaprig.errors import ProcessingError, ValidationError
+from mocaprig.process.body.jacobian import point_jacobian, pose_geometry
 from mocaprig.process.body.kinematics import (
     EVENTCAP_KEYPOINT_JOINTS,
     EVENTCAP_KEYPOINTS,
@@ -73,6 +74,7 @@ from mocaprig.process.body.kinematics import (
     forward_kinematics,
     forward_kinematics_torch,
     rotvec_to_matrix,
+    skew_torch,
 )
 from mocaprig.process.body.shape import BodyShape, rest_offsets
 from mocaprig.process.body.skeleton import (
@@ -476,120 +478,15 @@ def _axis_angle_exp(w: torch.Tensor) -> torch.Tensor:
     theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
     a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
     b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / (theta * theta))
-    k = _skew(w)
+    k = skew_torch(w)
     eye = torch.eye(3, dtype=w.dtype).expand(k.shape)
     return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3): ``_skew(a) @ b = a × b``."""
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape[:-1], 3, 3)
-
-
-# --- analytic kinematic Jacobians -----------------------------------------------------------
-
-
-def _euler_map() -> F64:
-    """(27, 26, 3): the Euler angles (X, Y, Z order) each DoF gives each joint, per radian.
-
-    Derived from the public forward kinematics (its documented ``R_local = Rx·Ry·Rz``): with
-    one DoF at a test angle and all others 0, every joint's local rotation turns about one
-    axis, so its rotation vector divided by the angle is that DoF's column of the map.
-    """
-    test = 0.3
-    poses = np.zeros((NUM_DOF, POSE_DIM))
-    poses[:, ROOT_DIM:] = np.eye(NUM_DOF) * test
-    rots = forward_kinematics(poses, BodyShape.from_height(1.75)).rotations
-    par = np.array([max(p, 0) for p in PARENTS])
-    local = np.swapaxes(rots[:, par], -1, -2) @ rots
-    local[:, 0] = rots[:, 0]  # the root's "parent" is the world
-    rv = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_rotvec().reshape(NUM_DOF, -1, 3)
-    out = np.asarray(rv, dtype=np.float64) / test
-    out[np.abs(out) < 1e-9] = 0.0
-    return out
-
-
-def _ancestors() -> npt.NDArray[np.bool_]:
-    """(26, 26): ``[s, j]`` is True when joint ``j`` is ``s`` or one of its ancestors."""
-    a = np.zeros((len(JOINTS), len(JOINTS)), dtype=bool)
-    for s in range(len(JOINTS)):
-        j = s
-        while j >= 0:
-            a[s, j] = True
-            j = PARENTS[j]
-    return a
-
-
-_EULER = _euler_map()
-# [s, d, j, k]: how much DoF d turns joint j about its Euler axis k, for points on segment s.
-_COEFF = torch.from_numpy(
-    (_ancestors()[:, None, :, None] * _EULER[None]).reshape(len(JOINTS) * NUM_DOF, -1)
-)  # (26 * 27, 26 * 3)
-_EULER_FLAT = torch.from_numpy(_EULER.reshape(NUM_DOF, -1).copy())
-_PARENT_OR_ROOT = torch.tensor([max(p, 0) for p in PARENTS])
 # Segment of each keypoint: the 15 body joints ride on their own frames, the face on the head.
 _KEYPOINT_SEGMENT = torch.tensor(
     [*EVENTCAP_KEYPOINT_JOINTS, *([JOINTS.index("Head")] * (NUM_KEYPOINTS - NUM_BODY_KEYPOINTS))]
 )
-
-
-@dataclass(frozen=True, slots=True)
-class _Geometry:
-    """Posed skeleton of every frame and its derivative operators.
-
-    ``d_mat[f, s, d] @ x - d_vec[f, s, d]`` is the derivative of a world point ``x`` riding
-    on segment ``s`` at frame ``f`` with respect to angle ``d``.
-    """
-
-    pos: torch.Tensor  # (F, 26, 3) m
-    rot: torch.Tensor  # (F, 26, 3, 3)
-    root_t: torch.Tensor  # (F, 3) m
-    d_mat: torch.Tensor  # (F, 26, 27, 3, 3)
-    d_vec: torch.Tensor  # (F, 26, 27, 3)
-
-
-def _geometry(
-    pos: torch.Tensor,
-    rot: torch.Tensor,
-    root_r: torch.Tensor,
-    root_t: torch.Tensor,
-    angles: torch.Tensor,
-) -> _Geometry:
-    e = (angles @ _EULER_FLAT).reshape(angles.shape[0], len(JOINTS), 3)
-    par_rot = rot[:, _PARENT_OR_ROOT]
-    par_rot = torch.cat([root_r[:, None], par_rot[:, 1:]], dim=1)  # (F, 26, 3, 3)
-    ca, sa = torch.cos(e[..., 0]), torch.sin(e[..., 0])
-    cb, sb = torch.cos(e[..., 1]), torch.sin(e[..., 1])
-    zero, one = torch.zeros_like(ca), torch.ones_like(ca)
-    local_axes = torch.stack(
-        [
-            torch.stack([one, zero, zero], -1),  # X
-            torch.stack([zero, ca, sa], -1),  # Rx·Y
-            torch.stack([sb, -sa * cb, ca * cb], -1),  # Rx·Ry·Z
-        ],
-        dim=-2,
-    )  # (F, 26, 3 axes, 3)
-    axes = (par_rot[:, :, None] @ local_axes[..., None])[..., 0]  # world axes (F, 26, 3, 3)
-    moment = torch.linalg.cross(axes, pos[:, :, None].expand_as(axes))  # a × pivot
-    n_f, n_j = pos.shape[0], len(JOINTS)
-    d_mat = (_COEFF @ _skew(axes).reshape(n_f, n_j * 3, 9)).reshape(n_f, n_j, NUM_DOF, 3, 3)
-    d_vec = (_COEFF @ moment.reshape(n_f, n_j * 3, 3)).reshape(n_f, n_j, NUM_DOF, 3)
-    return _Geometry(pos=pos, rot=rot, root_t=root_t, d_mat=d_mat, d_vec=d_vec)
-
-
-def _point_jacobian(
-    geo: _Geometry, frame: torch.Tensor, segment: torch.Tensor, x: torch.Tensor
-) -> torch.Tensor:
-    """d x / d (33 per-frame parameters) for world points ``x`` (..., 3): (..., 3, 33)."""
-    j_root_r = -_skew(x - geo.root_t[frame])  # δω × (x − t)
-    j_root_t = torch.eye(3, dtype=x.dtype).expand(j_root_r.shape)
-    n_f, n_j = geo.d_mat.shape[:2]
-    d_mat = geo.d_mat.reshape(n_f, n_j, NUM_DOF * 3, 3)[frame, segment]  # (..., 81, 3)
-    j_ang = (d_mat @ x[..., None])[..., 0].reshape(*x.shape[:-1], NUM_DOF, 3)
-    j_ang = j_ang - geo.d_vec[frame, segment]
-    return torch.cat([j_root_r, j_root_t, j_ang.transpose(-1, -2)], dim=-1)
 
 
 def _projection_jacobian(
@@ -837,17 +734,17 @@ class _Problem:
         terms, w = self.weights(r)
         r_cor, r_2d, r_3d, r_temp = r
         w_cor, w_2d, w_3d, w_temp = w
-        geo = _geometry(q.pos, q.rot, q.root_r, q.root_t, q.angles)
+        geo = pose_geometry(q.pos, q.rot, q.root_r, q.root_t, q.angles)
         frames = torch.arange(self.F)[:, None].expand(self.F, NUM_KEYPOINTS)
-        d_kp = _point_jacobian(geo, frames, _KEYPOINT_SEGMENT.expand_as(frames), q.kp)
-        j_cor = _point_jacobian(geo, self.cor_frame, self.cor_seg, q.cor_x)
+        d_kp = point_jacobian(geo, frames, _KEYPOINT_SEGMENT.expand_as(frames), q.kp)
+        j_cor = point_jacobian(geo, self.cor_frame, self.cor_seg, q.cor_x)
         d_cor = self._pixel_jacobian(q.cor_x, j_cor)
         d_cor_i = None
         if self.relative:
             # Moving S_i moves the anchor in the segment frame by −R_iᵀ·(its attached motion),
             # which S_j carries as R_j·R_iᵀ: dx_j/dS_i = −R_j·R_iᵀ·J_point(i, anchor).
             fi, sg = self.cor_frame_i, self.cor_seg
-            j_anchor = _point_jacobian(geo, fi, sg, self.cor_anchor)
+            j_anchor = point_jacobian(geo, fi, sg, self.cor_anchor)
             carry = q.rot[self.cor_frame, sg] @ q.rot[fi, sg].transpose(-1, -2)
             d_cor_i = -self._pixel_jacobian(q.cor_x, carry @ j_anchor)
         d_det = self._pixel_jacobian(q.kp_det, d_kp[self.det_frame])

@@ -24,6 +24,11 @@ def _fixes(report: Any) -> dict[tuple[str, str], str]:
 def test_doctor_on_the_healthy_mock_rig_finds_nothing_to_fix(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
+    if check_libusb().verdict is Verdict.FIX:  # the doctor is right to report it then
+        pytest.skip(
+            "libusb-1.0 is not installed on this host (Debian: apt-get install libusb-1.0-0; "
+            ".ci/run installs it): the rig is not healthy without it"
+        )
     assert main(["doctor", "--mock", "--seconds", "1", "--listen-seconds", "0.5", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["ok"] is True

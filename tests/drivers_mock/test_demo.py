@@ -51,6 +51,15 @@ def test_demo_text_names_the_unseen_real_protocol_and_both_frame_sets() -> None:
     assert "inside the view (75 % of frames) MPJPE 44.9 mm, PCK@50 80.0 %" in line
     assert "all frames 51.2 mm, 70.0 %" in line
     assert "no frame inside the view" in _unseen_real_line(_unseen(None))
+    assert "off-model" not in line
+    off = _unseen(30.04)
+    off["solve"] = True
+    off["off_model"] = {**_unseen(38.06), "protocol": "off-model"}
+    lines = _unseen_real_line(off).splitlines()
+    assert "skeleton solve" in lines[0]
+    assert "[off-model]" in lines[1]
+    assert "does not mirror" in lines[1]
+    assert "MPJPE 38.1 mm" in lines[1]
 
 
 def test_demo_text_says_why_the_unseen_real_figure_is_missing() -> None:

@@ -46,7 +46,8 @@ def test_live_run_on_the_mock_rig_records_joints_near_the_truth(
     cams = open_cameras("mock", seed=cs.seed, seconds=cs.seconds)
     got: list[tuple[LiveResult, LiveInstant]] = []
     out = tmp_path / "live.mcap"
-    predictor = DemocapPredictor(rotations=2)  # the live setting: 2 turns, one batched pass
+    # the live setting: 2 turns in one batched pass, the network alone (no skeleton solve)
+    predictor = DemocapPredictor(rotations=2, solve=False)
     try:
         summary = run_live(
             cams,

@@ -60,15 +60,15 @@ def test_half_turn_adds_nothing_and_ensemble_is_the_median_of_turned_estimates(
     tiny_config: DemocapConfig,
 ) -> None:
     ck = _checkpoint(tiny_config)
-    single = DemocapPredictor(ck, rotations=1)
+    single = DemocapPredictor(ck, rotations=1, solve=False)
     cloud = _cloud()
     base = single.predict(cloud).joints_m
     # the back view of a cloud is the front view of the cloud turned by 180 degrees
     np.testing.assert_allclose(_turned(single, cloud, 180.0), base, atol=1e-6)
     members = [_turned(single, cloud, deg) for deg in (0.0, 60.0, 120.0)]
-    got = DemocapPredictor(ck, rotations=3).predict(cloud).joints_m
+    got = DemocapPredictor(ck, rotations=3, solve=False).predict(cloud).joints_m
     np.testing.assert_allclose(got, np.median(members, axis=0), atol=1e-6)
-    mean = DemocapPredictor(ck, rotations=3, combine="mean").predict(cloud).joints_m
+    mean = DemocapPredictor(ck, rotations=3, combine="mean", solve=False).predict(cloud).joints_m
     np.testing.assert_allclose(mean, np.mean(members, axis=0), atol=1e-6)
     assert not np.allclose(got, base, atol=1e-4)  # the ensemble does change the estimate
 
@@ -76,9 +76,9 @@ def test_half_turn_adds_nothing_and_ensemble_is_the_median_of_turned_estimates(
 def test_parallel_passes_give_the_same_estimate(tiny_config: DemocapConfig) -> None:
     ck = _checkpoint(tiny_config)
     clouds = [_cloud(), _cloud()[::2]]
-    one = DemocapPredictor(ck, rotations=4, workers=1).predict_many(clouds)
+    one = DemocapPredictor(ck, rotations=4, solve=False, workers=1).predict_many(clouds)
     for workers in (2, 3, 8):
-        other = DemocapPredictor(ck, rotations=4, workers=workers).predict_many(clouds)
+        other = DemocapPredictor(ck, rotations=4, solve=False, workers=workers).predict_many(clouds)
         # Split into batches of other sizes, the float32 kernels may sum in another order:
         # the same estimate to float32 noise (~1e-7 m seen), far below a micrometre.
         for a, b in zip(one, other, strict=True):
@@ -93,12 +93,13 @@ def test_batched_turns_equal_one_pass_per_turn_and_cloud(
     cfg = dataclasses.replace(tiny_config, variant=variant)
     ck = _checkpoint(cfg)
     clouds = [_cloud(), _cloud()[::2], _cloud()[1::3]]
-    pred = DemocapPredictor(ck, rotations=3)
+    pred = DemocapPredictor(ck, rotations=3, solve=False)
     got = pred.predict_many(clouds)
     assert pred.last_timings_s.keys() == {"render_s", "network_s", "decode_s"}
     for cloud, g in zip(clouds, got, strict=True):
         # the median of the turned single shots, each its own pass of one front/back pair
-        members = [_turned(DemocapPredictor(ck, rotations=1), cloud, d) for d in (0, 60, 120)]
+        single = DemocapPredictor(ck, rotations=1, solve=False)
+        members = [_turned(single, cloud, d) for d in (0, 60, 120)]
         np.testing.assert_allclose(g.joints_m, np.median(members, axis=0), atol=1e-6)
         assert np.isnan(g.markers_m).all() == (variant == "pose")
 
@@ -106,7 +107,7 @@ def test_batched_turns_equal_one_pass_per_turn_and_cloud(
 def test_worker_threads_are_kept_across_calls(tiny_config: DemocapConfig) -> None:
     ck = _checkpoint(tiny_config)
     before = {t.ident for t in threading.enumerate() if t.name.startswith("democap-turns")}
-    pred = DemocapPredictor(ck, rotations=2, workers=2)
+    pred = DemocapPredictor(ck, rotations=2, solve=False, workers=2)
     pred.predict(_cloud())
     first = {t.ident for t in threading.enumerate() if t.name.startswith("democap-turns")}
     for _ in range(3):
@@ -131,8 +132,8 @@ def test_inference_copy_matches_the_network_and_leaves_it_untouched(
 ) -> None:
     ck = _checkpoint(tiny_config)
     before = {k: v.clone() for k, v in ck.model.state_dict().items()}
-    fast = DemocapPredictor(ck, rotations=1, optimise=True).predict(_cloud())
-    plain = DemocapPredictor(ck, rotations=1, optimise=False).predict(_cloud())
+    fast = DemocapPredictor(ck, rotations=1, optimise=True, solve=False).predict(_cloud())
+    plain = DemocapPredictor(ck, rotations=1, optimise=False, solve=False).predict(_cloud())
     np.testing.assert_allclose(fast.joints_m, plain.joints_m, atol=1e-5)
     np.testing.assert_allclose(fast.markers_m, plain.markers_m, atol=1e-5)
     for k, v in ck.model.state_dict().items():
@@ -147,3 +148,42 @@ def test_bad_options_are_refused(tiny_config: DemocapConfig) -> None:
     with pytest.raises(ValidationError, match="workers"):
         DemocapPredictor(ck, workers=0)
     assert DemocapPredictor(ck).predict_many([]) == []
+
+
+def test_the_solve_fits_the_body_from_the_estimates_and_is_skipped_without_markers(
+    tiny_config: DemocapConfig,
+) -> None:
+    ck = _checkpoint(tiny_config)
+    clouds = [_cloud(), _cloud()[::2]]
+    raw = DemocapPredictor(ck, rotations=3, solve=False).predict_many(clouds)
+    pred = DemocapPredictor(ck, rotations=3)
+    assert pred.solves
+    got = pred.predict_many(clouds)
+    assert "solve_s" in pred.last_timings_s
+    for r, g in zip(raw, got, strict=True):
+        assert r.pose is None
+        assert r.height_m is None
+        assert g.pose is not None
+        assert g.pose.shape == (33,)
+        assert g.height_m is not None
+        assert 1.4 < g.height_m < 2.1
+        assert not np.allclose(g.joints_m, r.joints_m)
+    pose_only = DemocapPredictor(_checkpoint(dataclasses.replace(tiny_config, variant="pose")))
+    assert not pose_only.solves
+    assert pose_only.predict(_cloud()).pose is None
+
+
+def test_hypotheses_are_the_ensemble_and_its_turns(tiny_config: DemocapConfig) -> None:
+    ck = _checkpoint(tiny_config)
+    clouds = [_cloud(), _cloud()[::2]]
+    pred = DemocapPredictor(ck, rotations=3)
+    markers, joints, turn_m, turn_j = pred.hypotheses(clouds)
+    assert markers.shape == (2, 53, 3)
+    assert turn_j.shape == (3, 2, 19, 3)
+    np.testing.assert_allclose(joints, np.median(turn_j, axis=0))
+    np.testing.assert_allclose(markers, np.median(turn_m, axis=0))
+    raw = DemocapPredictor(ck, rotations=3, solve=False).predict_many(clouds)
+    np.testing.assert_allclose(np.stack([r.joints_m for r in raw]), joints, atol=1e-9)
+    empty = pred.hypotheses([])
+    assert empty[0].shape == (0, 53, 3)
+    assert empty[3].shape == (3, 0, 19, 3)

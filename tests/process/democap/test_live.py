@@ -98,7 +98,8 @@ def _frame_set(cams: Sequence[LiveCamera], seed: int) -> list[Pair]:
 @pytest.fixture
 def predictor(tiny_config: DemocapConfig) -> DemocapPredictor:
     torch.manual_seed(0)
-    return DemocapPredictor(Checkpoint(tiny_config, DemocapNet(tiny_config).eval()))
+    # the live setting: the network alone (its test, not the solve's)
+    return DemocapPredictor(Checkpoint(tiny_config, DemocapNet(tiny_config).eval()), solve=False)
 
 
 def _by_hand(

@@ -1,0 +1,833 @@
+"""Skeleton solve: the articulated body model fitted to the fused marker cloud.
+
+The network labels the cloud and regresses 53 markers and 19 joints frame by frame; its
+joints are not bound to a skeleton and it straightens or swaps what it rarely saw. The solve
+does what a marker-based capture system does after labelling: it fits the body model of
+:mod:`mocaprig.process.body` (26 joints, the 27 bounded angles, the 53-marker set, 15
+segment lengths and a girth) to the observed points, from the network's estimates.
+
+Unknowns per frame (50): the root rotation and translation, the 27 angles (kept within
+``DOF_LIMITS_RAD``), and the shape ``z = (h, g, δ_1..15)``: every length of the reference
+body (:meth:`BodyShape.from_height` 1.75 m) times ``h·(1 + δ_k)``, every radius times ``h·g``.
+Rest offsets are linear in the lengths (exact); marker offsets are linearised about the
+reference body (over 300 sampled bodies the worst marker is off by 1 mm at the median body,
+7 mm at the 95th percentile, 11 mm at worst) and scale with ``h`` exactly (the placement is
+scale-equivariant).
+
+Energy, metres (Geman–McClure ``ρ_c(d) = c²d²/(c²+d²)``, bounded, so a stray point or a
+missing marker costs at most ``c²``)::
+
+    E = Σ_markers ρ_c(d(M_m, cloud)) / σ_d²  +  Σ_points ρ_c(d(p, markers)) / σ_d²
+      + Σ_joints ρ_cp(‖J_j − Ĵ_j‖) / σ_J²  +  Σ_markers ρ_cp(‖M_m − M̂_m‖) / σ_M²
+      + shape prior
+
+The first two terms tie the model to the observed points both ways (each model marker to its
+nearest point, each point to its nearest model marker; nearest neighbours are found anew at
+every step, ICP-style), the next two keep it near the network's estimate ``Ĵ, M̂`` where the
+cloud says nothing (a hidden hand), the last keeps the body plausible (height 0.86–1.14 of
+the reference's, lengths ±4 %). The gate ``c`` shrinks from ``gate_start_m`` to ``gate_m``
+over the iterations (coarse to fine).
+
+Solver: Levenberg–Marquardt with IRLS weights in torch float64, every frame an independent
+problem with its own damping, batched; analytic Jacobians (:mod:`process.body.jacobian` for
+the pose, the shape's in closed form); a step is kept only when the energy drops. Each
+frame starts from the network's estimate: every rigid group of the skeleton (a joint with
+DoF and what rides on it) is turned onto its estimated markers and joints (Kabsch), the
+angles are read off the groups' relative rotations (of the two Euler solutions the one
+within the limits: an arm over the head is abduction, not a flipped twist), then an inverse
+kinematics fit onto the estimate refines angles and shape. It is solved once per
+**hypothesis**: the ensemble's estimate and each single turn's (:class:`DemocapPredictor`),
+and once more from each of them bent forward at the hips (``bend_starts_rad``: the
+network's known failure is to straighten a body bent over). All starts take the first
+``prune_after`` steps; only the ``keep_starts`` best of each frame take the rest.
+The hypothesis whose solution explains the cloud best (the first two terms at
+``selection_gate_m``, no network prior) wins: the turns disagree most where the network is
+unsure, and the cloud decides.
+
+What it assumes: the subject is one of our bodies (proportions near Drillis & Contini,
+markers where :class:`MarkerSet` puts them, rigid on their segments). The ``off-model``
+evaluation protocol measures what it costs when they are not (docs/democap.md).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from scipy.spatial.transform import Rotation
+
+from mocaprig.errors import ValidationError
+from mocaprig.process.body.jacobian import JOINT_SEGMENT, point_jacobian, pose_geometry
+from mocaprig.process.body.kinematics import (
+    EULER_MAP,
+    forward_kinematics,
+    forward_kinematics_torch,
+    neutral_pose,
+    rotvec_to_matrix_torch,
+)
+from mocaprig.process.body.markers import NUM_MARKERS, MarkerSet
+from mocaprig.process.body.shape import (
+    LENGTH_FIELDS,
+    RADIUS_FIELDS,
+    VERTICAL_CHAIN,
+    BodyShape,
+    rest_offsets,
+)
+from mocaprig.process.body.skeleton import (
+    DEMOCAP_JOINT_INDEX,
+    DEMOCAP_JOINTS,
+    DOF_LIMITS_RAD,
+    JOINTS,
+    NUM_DOF,
+    PARENTS,
+    ROOT_DIM,
+)
+from mocaprig.validation import check_finite, check_positive, check_shape
+
+__all__ = ["REFERENCE_HEIGHT_M", "SolveOptions", "SolveResult", "solve_skeleton"]
+
+_log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Standing height of the reference body the shape is measured against (m).
+REFERENCE_HEIGHT_M = 1.75
+_NL = len(LENGTH_FIELDS)
+#: Shape unknowns: h, g, then one relative change per length.
+_NS = 2 + _NL
+_NP = ROOT_DIM + NUM_DOF + _NS
+#: Frames solved at once (bounds the memory of the derivative operators, ~50 kB a frame).
+_CHUNK = 512
+_FAR_M = 1.0e3
+
+
+@dataclass(frozen=True, slots=True)
+class SolveOptions:
+    """Weights and schedule of the skeleton solve (module doc); lengths in metres.
+
+    Attributes:
+        data_sigma_m: spread of an observed point about its marker (σ_d).
+        gate_start_m, gate_m: the data terms' gate ``c``, shrunk geometrically from the first
+            to the second over the iterations.
+        selection_gate_m: the gate of the energy that picks the hypothesis.
+        joint_prior_sigma_m, marker_prior_sigma_m: trust in the network's joints and markers.
+        prior_gate_m: the network terms' gate (a wrong network joint stops pulling).
+        height_sigma: prior spread of ``h`` (relative to the reference body), within
+            ``height_range``; length_sigma: of each ``δ``; girth_mean, girth_sigma: of ``g``.
+        init_iterations: inverse-kinematics steps onto the network's estimate.
+        iterations: steps of the solve proper.
+        bend_starts_rad: further starts made from every hypothesis with the body above the
+            hips bent forward by each angle (rad) about the hip axis: the network's known
+            failure is to straighten a body bent over (docs/democap.md); () for none.
+        prune_after, keep_starts: after ``prune_after`` steps of the solve only the
+            ``keep_starts`` starts of each frame that explain its cloud best go on (the others
+            mostly end where one of them does; the cost of the rest is theirs alone).
+    """
+
+    data_sigma_m: float = 0.015
+    gate_start_m: float = 0.15
+    gate_m: float = 0.045
+    selection_gate_m: float = 0.03
+    joint_prior_sigma_m: float = 0.05
+    marker_prior_sigma_m: float = 0.08
+    prior_gate_m: float = 0.10
+    height_sigma: float = 0.065
+    height_range: tuple[float, float] = (0.86, 1.14)
+    length_sigma: float = 0.04
+    girth_mean: float = 1.02
+    girth_sigma: float = 0.08
+    init_iterations: int = 8
+    iterations: int = 30
+    bend_starts_rad: tuple[float, ...] = (0.8,)
+    prune_after: int = 10
+    keep_starts: int = 2
+
+    def __post_init__(self) -> None:
+        for name in (
+            "data_sigma_m",
+            "gate_start_m",
+            "gate_m",
+            "selection_gate_m",
+            "joint_prior_sigma_m",
+            "marker_prior_sigma_m",
+            "prior_gate_m",
+            "height_sigma",
+            "length_sigma",
+            "girth_mean",
+            "girth_sigma",
+        ):
+            check_positive(float(getattr(self, name)), name=f"SolveOptions.{name}")
+        lo, hi = self.height_range
+        if not 0 < lo < 1 < hi:
+            msg = f"SolveOptions.height_range must be (low < 1 < high), got {self.height_range}"
+            raise ValidationError(msg)
+        if self.init_iterations < 0 or self.iterations < 0 or self.prune_after < 0:
+            msg = "SolveOptions.init_iterations, .iterations and .prune_after must be >= 0"
+            raise ValidationError(msg)
+        if self.keep_starts < 1:
+            msg = f"SolveOptions.keep_starts must be >= 1, got {self.keep_starts}"
+            raise ValidationError(msg)
+
+
+@dataclass(frozen=True, slots=True)
+class SolveResult:
+    """The solved skeleton of B frames, world frame, metres.
+
+    Attributes:
+        markers_m: (B, 53, 3) model markers; joints_m: (B, 19, 3) DeMoCap joints.
+        poses: (B, 33) pose vectors (:mod:`process.body.skeleton`) of the solved body.
+        height_m: (B,) its standing height.
+        energy: (B,) the selection energy of the winning hypothesis (lower: the cloud is
+            explained better; a sum of bounded terms, one per marker and per point).
+        hypothesis: (B,) index of the winning hypothesis; ``H·(1 + a) + h`` for hypothesis
+            ``h`` bent by the ``a``-th angle of :attr:`SolveOptions.bend_starts_rad`.
+    """
+
+    markers_m: FloatArray
+    joints_m: FloatArray
+    poses: FloatArray
+    height_m: FloatArray
+    energy: FloatArray
+    hypothesis: npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class _Basis:
+    """The reference body and the shape's linear maps (module doc)."""
+
+    f0: torch.Tensor  # (28,) reference lengths then radii, m
+    d_off: torch.Tensor  # (28, 26, 3): rest offsets per field (exactly linear)
+    m_off0: torch.Tensor  # (53, 3) reference marker offsets, m
+    d_moff: torch.Tensor  # (28, 53, 3): marker offsets per field (linearised)
+    marker_joint: torch.Tensor  # (53,)
+    joint_index: torch.Tensor  # (19,) DeMoCap joints in our skeleton
+    joint_segment: torch.Tensor  # (19,) the segment each rides on
+    groups: tuple[_Group, ...]  # the rigid groups of the first guess, root first
+    rest_points_m: FloatArray  # (72, 3) markers then DeMoCap joints, neutral pose, body frame
+    rest_root_m: FloatArray  # (3,) the root joint in that pose
+    leg_points: npt.NDArray[np.bool_]  # (72,) points on the thighs and below
+    hip_joints: tuple[int, int]  # the DeMoCap indices of the right and left hip joints
+    lo: torch.Tensor  # (27,) angle limits, rad
+    hi: torch.Tensor
+
+
+@dataclass(frozen=True, slots=True)
+class _Group:
+    """Points that turn together with one joint's DoF (the joint and its descendants up to
+    the next joint with DoF of its own), for the first guess of the angles.
+
+    ``points`` index the 72 points (53 markers, then the 19 DeMoCap joints); ``parent`` is
+    the group whose rotation the angles are relative to (-1: the world, the root's group);
+    ``dofs`` and ``coeff`` (K, 3) say which DoF turn it about which local axis, per radian.
+    """
+
+    joint: int
+    parent: int
+    points: npt.NDArray[np.int64]
+    dofs: npt.NDArray[np.int64]
+    coeff: FloatArray
+
+
+def _groups(marker_joint: npt.NDArray[np.int64]) -> tuple[_Group, ...]:
+    """The rigid groups (:class:`_Group`) of the skeleton, parents before children.
+
+    The spine's three DoF turn Spine1 and Spine2 half each; the chest (Spine2 and the fixed
+    clavicles) is taken as one group turned by their whole sum from the pelvis.
+    """
+    has_dof = np.abs(EULER_MAP).sum(axis=(0, 2)) > 0
+    spine1 = JOINTS.index("Spine1")
+    owner = [0] * len(JOINTS)  # the group joint each joint's frame turns with
+    for j in range(1, len(JOINTS)):
+        owner[j] = j if has_dof[j] and j != spine1 else owner[PARENTS[j]]
+    heads = [0, *(j for j in range(1, len(JOINTS)) if owner[j] == j)]
+    seg = [JOINT_SEGMENT[j] for j in DEMOCAP_JOINT_INDEX]
+    out = []
+    for g in heads:
+        pts = [i for i, j in enumerate(marker_joint) if owner[int(j)] == g]
+        pts += [NUM_MARKERS + k for k, s in enumerate(seg) if owner[s] == g]
+        # the group's own pivot, a DeMoCap joint riding on its parent
+        pts += [NUM_MARKERS + k for k, j in enumerate(DEMOCAP_JOINT_INDEX) if j == g]
+        coeff = EULER_MAP[:, g, :] + (EULER_MAP[:, spine1, :] if g == spine1 + 1 else 0.0)
+        dofs = np.flatnonzero(np.abs(coeff).sum(axis=1) > 0)
+        par = -1 if g == 0 else heads.index(owner[PARENTS[g]])
+        out.append(_Group(g, par, np.array(sorted(set(pts))), dofs, coeff[dofs]))
+    return tuple(out)
+
+
+def _leg_points(marker_joint: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+    """(72,): which of the 53 markers and 19 DeMoCap joints are on a leg (hip joint down)."""
+    hips = {JOINTS.index("RightUpLeg"), JOINTS.index("LeftUpLeg")}
+
+    def on_leg(j: int) -> bool:
+        while j > 0:
+            if j in hips:
+                return True
+            j = PARENTS[j]
+        return False
+
+    return np.array(
+        [on_leg(int(j)) for j in marker_joint] + [on_leg(j) for j in DEMOCAP_JOINT_INDEX]
+    )
+
+
+def _bent(
+    markers_m: FloatArray, joints_m: FloatArray, angle_rad: float, b: _Basis
+) -> tuple[FloatArray, FloatArray]:
+    """Estimates (B, 53, 3), (B, 19, 3) with everything above the hips turned forward by
+    ``angle_rad`` about the line through the hip joints (the legs stay)."""
+    pts = np.concatenate([markers_m, joints_m], axis=1)
+    r_hip, l_hip = joints_m[:, b.hip_joints[0]], joints_m[:, b.hip_joints[1]]
+    axis = r_hip - l_hip
+    axis /= np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-9)
+    pivot = 0.5 * (r_hip + l_hip)
+    # about the subject's right-pointing axis, a negative turn brings the head forward
+    rot = Rotation.from_rotvec(-angle_rad * axis).as_matrix()  # (B, 3, 3)
+    turned = np.einsum("bij,bkj->bki", rot, pts - pivot[:, None]) + pivot[:, None]
+    out = np.where(b.leg_points[None, :, None], pts, turned)
+    return out[:, :NUM_MARKERS], out[:, NUM_MARKERS:]
+
+
+def _shape_from_fields(f: FloatArray) -> BodyShape:
+    d = dict(zip(LENGTH_FIELDS + RADIUS_FIELDS, (float(v) for v in f), strict=True))
+    return BodyShape(height_m=sum(d[k] for k in VERTICAL_CHAIN), **d)
+
+
+@functools.cache
+def _basis() -> _Basis:
+    ref = BodyShape.from_height(REFERENCE_HEIGHT_M)
+    names = LENGTH_FIELDS + RADIUS_FIELDS
+    f0 = np.array([getattr(ref, k) for k in names])
+    ms = MarkerSet.for_shape(ref)
+    o0, r0 = ms.offsets_m, rest_offsets(ref)
+    d_off, d_moff = [], []
+    for k in range(len(names)):
+        # Rest offsets are linear in the fields: the unit response is exact; the marker
+        # offsets are smooth in them: a central difference.
+        e = 1e-4 * f0[k]
+        lo, hi = f0.copy(), f0.copy()
+        lo[k] -= e
+        hi[k] += e
+        s_lo, s_hi = _shape_from_fields(lo), _shape_from_fields(hi)
+        d_off.append((rest_offsets(s_hi) - rest_offsets(s_lo)) / (2 * e))
+        d_moff.append(
+            (MarkerSet.for_shape(s_hi).offsets_m - MarkerSet.for_shape(s_lo).offsets_m) / (2 * e)
+        )
+    d_off_a = np.array(d_off)
+    if np.abs(np.tensordot(f0, d_off_a, 1) - r0).max() > 1e-9:  # pragma: no cover - model change
+        msg = "rest offsets are no longer linear in the shape fields; the solve needs a new basis"
+        raise RuntimeError(msg)
+    rest = neutral_pose(ref)
+    kin = forward_kinematics(rest, ref)
+    rest_markers = kin.positions_m[ms.joint_index] + np.einsum(
+        "mij,mj->mi", kin.rotations[ms.joint_index], o0
+    )
+    rest_points = np.concatenate([rest_markers, kin.positions_m[list(DEMOCAP_JOINT_INDEX)]])
+    t = torch.from_numpy
+    return _Basis(
+        f0=t(f0),
+        d_off=t(d_off_a),
+        m_off0=t(o0.copy()),
+        d_moff=t(np.array(d_moff)),
+        marker_joint=t(ms.joint_index.copy()),
+        joint_index=torch.tensor(DEMOCAP_JOINT_INDEX),
+        joint_segment=torch.tensor([JOINT_SEGMENT[j] for j in DEMOCAP_JOINT_INDEX]),
+        groups=_groups(ms.joint_index),
+        rest_points_m=rest_points,
+        rest_root_m=kin.positions_m[0].copy(),
+        leg_points=_leg_points(ms.joint_index),
+        hip_joints=(DEMOCAP_JOINTS.index("RightUpLeg"), DEMOCAP_JOINTS.index("LeftUpLeg")),
+        lo=t(DOF_LIMITS_RAD[:, 0].copy()),
+        hi=t(DOF_LIMITS_RAD[:, 1].copy()),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _State:
+    root_r: torch.Tensor  # (P, 3, 3)
+    root_t: torch.Tensor  # (P, 3)
+    angles: torch.Tensor  # (P, 27)
+    z: torch.Tensor  # (P, 17)
+
+    def step(self, d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> _State:
+        """The state moved by increments ``d`` (P, 50), angles projected onto the limits."""
+        return _State(
+            root_r=rotvec_to_matrix_torch(d[:, 0:3]) @ self.root_r,
+            root_t=self.root_t + d[:, 3:6],
+            angles=torch.clamp(self.angles + d[:, ROOT_DIM : ROOT_DIM + NUM_DOF], lo, hi),
+            z=self.z + d[:, ROOT_DIM + NUM_DOF :],
+        )
+
+    def where(self, keep: torch.Tensor, other: _State) -> _State:
+        """Per problem: this state where ``keep``, else ``other``."""
+        k1, k2 = keep[:, None], keep[:, None, None]
+        return _State(
+            root_r=torch.where(k2, self.root_r, other.root_r),
+            root_t=torch.where(k1, self.root_t, other.root_t),
+            angles=torch.where(k1, self.angles, other.angles),
+            z=torch.where(k1, self.z, other.z),
+        )
+
+    def take(self, idx: torch.Tensor) -> _State:
+        """The problems ``idx``."""
+        return _State(self.root_r[idx], self.root_t[idx], self.angles[idx], self.z[idx])
+
+    @staticmethod
+    def cat(states: Sequence[_State]) -> _State:
+        """The problems of ``states``, in order."""
+        return _State(
+            torch.cat([x.root_r for x in states]),
+            torch.cat([x.root_t for x in states]),
+            torch.cat([x.angles for x in states]),
+            torch.cat([x.z for x in states]),
+        )
+
+    def poses(self) -> FloatArray:
+        """(P, 33) pose vectors."""
+        rv = Rotation.from_matrix(self.root_r.numpy()).as_rotvec()
+        return np.concatenate([rv, self.root_t.numpy(), self.angles.numpy()], axis=1)
+
+
+@dataclass(frozen=True, slots=True)
+class _Posed:
+    pos: torch.Tensor  # (P, 26, 3)
+    rot: torch.Tensor  # (P, 26, 3, 3)
+    markers: torch.Tensor  # (P, 53, 3)
+    joints: torch.Tensor  # (P, 19, 3)
+    rel: torch.Tensor  # (P, 28) the fields at unit height scale
+    m_off: torch.Tensor  # (P, 53, 3) marker offsets, m
+
+
+def _pose(s: _State, b: _Basis) -> _Posed:
+    h, g, dl = s.z[:, 0:1], s.z[:, 1:2], s.z[:, 2:]
+    rel = torch.cat([b.f0[:_NL] * (1.0 + dl), b.f0[_NL:] * g], dim=1)
+    off = h[..., None] * torch.tensordot(rel, b.d_off, 1)
+    m_off = h[..., None] * (b.m_off0 + torch.tensordot(rel - b.f0, b.d_moff, 1))
+    local = torch.cat([torch.zeros(s.angles.shape[0], ROOT_DIM, dtype=s.angles.dtype), s.angles], 1)
+    pos_b, rot_b = forward_kinematics_torch(local, off)
+    pos = (s.root_r[:, None] @ pos_b[..., None])[..., 0] + s.root_t[:, None]
+    rot = s.root_r[:, None] @ rot_b
+    mj = b.marker_joint
+    markers = pos[:, mj] + (rot[:, mj] @ m_off[..., None])[..., 0]
+    return _Posed(pos, rot, markers, pos[:, b.joint_index], rel, m_off)
+
+
+def _shape_jacobians(s: _State, q: _Posed, b: _Basis) -> tuple[torch.Tensor, torch.Tensor]:
+    """d(markers)/dz (P, 53, 3, 17) and d(DeMoCap joints)/dz (P, 19, 3, 17)."""
+    h = s.z[:, 0]
+    p_n = s.z.shape[0]
+    # d(rest offsets)/dz (P, 26, 3, 17): h scales everything, g the radii, δ_k one length.
+    unit = torch.tensordot(q.rel, b.d_off, 1)  # offsets at h = 1
+    d_off = torch.zeros(p_n, len(JOINTS), 3, _NS, dtype=torch.float64)
+    d_off[..., 0] = unit
+    d_off[..., 1] = h[:, None, None] * torch.tensordot(b.f0[_NL:], b.d_off[_NL:], 1)
+    d_off[..., 2:] = h[:, None, None, None] * (b.f0[:_NL, None, None] * b.d_off[:_NL]).permute(
+        1, 2, 0
+    )
+    d_mo = torch.zeros(p_n, NUM_MARKERS, 3, _NS, dtype=torch.float64)
+    d_mo[..., 0] = q.m_off / h[:, None, None]
+    d_mo[..., 1] = h[:, None, None] * torch.tensordot(b.f0[_NL:], b.d_moff[_NL:], 1)
+    d_mo[..., 2:] = h[:, None, None, None] * (b.f0[:_NL, None, None] * b.d_moff[:_NL]).permute(
+        1, 2, 0
+    )
+    # A joint moves with its own offset (in its parent's frame) and with every ancestor's.
+    par_rot = q.rot[:, [max(p, 0) for p in PARENTS]]
+    moved = par_rot @ d_off  # (P, 26, 3, 17)
+    chain = [moved[:, 0] * 0.0]
+    for j in range(1, len(JOINTS)):
+        chain.append(chain[PARENTS[j]] + moved[:, j])
+    d_joint = torch.stack(chain, dim=1)  # (P, 26, 3, 17)
+    mj = b.marker_joint
+    d_markers = d_joint[:, mj] + q.rot[:, mj] @ d_mo
+    return d_markers, d_joint[:, b.joint_index]
+
+
+def _gm(d2: torch.Tensor, c: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Geman–McClure of squared distances: energy ``c²d²/(c²+d²)`` and IRLS weight."""
+    c2 = c * c
+    return c2 * d2 / (c2 + d2), (c2 / (c2 + d2)) ** 2
+
+
+@dataclass(frozen=True, slots=True)
+class _Data:
+    cloud: torch.Tensor  # (P, N, 3), padded far away
+    mask: torch.Tensor  # (P, N) 1 for a real point
+    tm: torch.Tensor  # (P, 53, 3) the network's markers
+    tj: torch.Tensor  # (P, 19, 3) and joints
+
+
+@dataclass(frozen=True, slots=True)
+class _Weights:
+    """Which terms a run uses and how (the init stage: network only, no gate)."""
+
+    data: bool
+    gate_m: float
+    sigma_d: float
+    sigma_j: float
+    sigma_m: float
+    prior_gate_m: float | None
+
+
+def _energy_terms(
+    q: _Posed, s: _State, data: _Data, w: _Weights, opt: SolveOptions
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Energy (P,) and the per-point IRLS weights and targets of the normal equations."""
+    aux: dict[str, torch.Tensor] = {}
+    e = torch.zeros(q.markers.shape[0], dtype=torch.float64)
+    if w.data:
+        d = torch.cdist(q.markers, data.cloud)  # (P, 53, N)
+        d_m, nn_m = d.min(dim=2)
+        d_c, nn_c = d.min(dim=1)
+        e_m, w_m = _gm(d_m * d_m, w.gate_m)
+        e_c, w_c = _gm(d_c * d_c, w.gate_m)
+        w_c = w_c * data.mask
+        e = e + (e_m.sum(1) + (e_c * data.mask).sum(1)) / w.sigma_d**2
+        # Per marker: the total weight and the weighted sum of its targets, both ways.
+        tgt = torch.gather(data.cloud, 1, nn_m[..., None].expand(-1, -1, 3)) * w_m[..., None]
+        wsum = w_m.clone()
+        wsum.scatter_add_(1, nn_c, w_c)
+        tgt.scatter_add_(1, nn_c[..., None].expand(-1, -1, 3), data.cloud * w_c[..., None])
+        aux["data_w"] = wsum / w.sigma_d**2
+        aux["data_t"] = tgt / w.sigma_d**2
+    for key, pts, target, sigma in (
+        ("joint", q.joints, data.tj, w.sigma_j),
+        ("marker", q.markers, data.tm, w.sigma_m),
+    ):
+        r2 = ((pts - target) ** 2).sum(-1)
+        if w.prior_gate_m is None:
+            en, wt = r2, torch.ones_like(r2)
+        else:
+            en, wt = _gm(r2, w.prior_gate_m)
+        e = e + en.sum(1) / sigma**2
+        aux[key] = wt / sigma**2
+    z = s.z
+    lo, hi = opt.height_range
+    r_shape = torch.cat(
+        [
+            ((z[:, 0] - 1.0) / opt.height_sigma)[:, None],
+            (torch.relu(z[:, 0] - hi) / 0.005)[:, None],
+            (torch.relu(lo - z[:, 0]) / 0.005)[:, None],
+            ((z[:, 1] - opt.girth_mean) / opt.girth_sigma)[:, None],
+            z[:, 2:] / opt.length_sigma,
+        ],
+        dim=1,
+    )
+    e = e + (r_shape**2).sum(1)
+    return e, aux
+
+
+def _normal_equations(
+    s: _State, q: _Posed, aux: dict[str, torch.Tensor], data: _Data, opt: SolveOptions, b: _Basis
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``JᵀWJ`` (P, 50, 50) and ``JᵀWr`` (P, 50) at ``s`` (IRLS weights from ``aux``)."""
+    p_n = s.z.shape[0]
+    geo = pose_geometry(q.pos, q.rot, s.root_r, s.root_t, s.angles)
+    frames = torch.arange(p_n)[:, None]
+    jm_pose = point_jacobian(
+        geo, frames.expand(-1, NUM_MARKERS), b.marker_joint.expand(p_n, -1), q.markers
+    )
+    jj_pose = point_jacobian(
+        geo, frames.expand(-1, len(b.joint_index)), b.joint_segment.expand(p_n, -1), q.joints
+    )
+    jm_shape, jj_shape = _shape_jacobians(s, q, b)
+    jm = torch.cat([jm_pose, jm_shape], dim=-1)  # (P, 53, 3, 50)
+    jj = torch.cat([jj_pose, jj_shape], dim=-1)  # (P, 19, 3, 50)
+    # Per point: a scalar weight and a residual; Σ w‖x − t‖² for every term at once.
+    wm = aux["marker"]
+    rm = wm[..., None] * (q.markers - data.tm)
+    if "data_w" in aux:
+        wm = wm + aux["data_w"]
+        rm = rm + aux["data_w"][..., None] * q.markers - aux["data_t"]
+    wj = aux["joint"]
+    rj = wj[..., None] * (q.joints - data.tj)
+    # JᵀWJ as one product of the weighted Jacobians of all points (P, 3·72, 50).
+    jw = torch.cat(
+        [
+            (jm * wm.sqrt()[..., None, None]).reshape(p_n, -1, _NP),
+            (jj * wj.sqrt()[..., None, None]).reshape(p_n, -1, _NP),
+        ],
+        dim=1,
+    )
+    a = jw.transpose(1, 2) @ jw
+    g = (jm.reshape(p_n, -1, _NP).transpose(1, 2) @ rm.reshape(p_n, -1, 1))[..., 0]
+    g = g + (jj.reshape(p_n, -1, _NP).transpose(1, 2) @ rj.reshape(p_n, -1, 1))[..., 0]
+    # The shape prior's rows (their derivatives are constants).
+    z = s.z
+    lo, hi = opt.height_range
+    o = ROOT_DIM + NUM_DOF
+    wh = 1.0 / opt.height_sigma**2
+    over = (z[:, 0] > hi).double() + (z[:, 0] < lo).double()
+    wb = over / 0.005**2
+    a[:, o, o] += wh + wb
+    g[:, o] += wh * (z[:, 0] - 1.0) + wb * (z[:, 0] - torch.clamp(z[:, 0], lo, hi))
+    wg = 1.0 / opt.girth_sigma**2
+    a[:, o + 1, o + 1] += wg
+    g[:, o + 1] += wg * (z[:, 1] - opt.girth_mean)
+    wl = 1.0 / opt.length_sigma**2
+    idx = torch.arange(o + 2, _NP)
+    a[:, idx, idx] += wl
+    g[:, o + 2 :] += wl * z[:, 2:]
+    return a, g
+
+
+def _levenberg_marquardt(
+    s: _State, data: _Data, weights: Sequence[_Weights], opt: SolveOptions, b: _Basis
+) -> _State:
+    """One LM step per entry of ``weights`` (the schedule), every problem damped on its own."""
+    p_n = s.z.shape[0]
+    lam = torch.full((p_n,), 1e-2, dtype=torch.float64)
+    eye = torch.eye(_NP, dtype=torch.float64)
+    q = _pose(s, b)
+    for w in weights:
+        e, aux = _energy_terms(q, s, data, w, opt)
+        a, g = _normal_equations(s, q, aux, data, opt, b)
+        diag = torch.diagonal(a, dim1=1, dim2=2).clamp_min(1e-9)
+        sys_ = a + lam[:, None, None] * torch.diag_embed(diag) + 1e-12 * eye
+        step = torch.linalg.solve(sys_, -g[..., None])[..., 0]
+        cand = s.step(step, b.lo, b.hi)
+        qc = _pose(cand, b)
+        ec, _ = _energy_terms(qc, cand, data, w, opt)
+        ok = torch.isfinite(ec) & (ec < e)
+        s = cand.where(ok, s)
+        q = _Posed(
+            pos=torch.where(ok[:, None, None], qc.pos, q.pos),
+            rot=torch.where(ok[:, None, None, None], qc.rot, q.rot),
+            markers=torch.where(ok[:, None, None], qc.markers, q.markers),
+            joints=torch.where(ok[:, None, None], qc.joints, q.joints),
+            rel=torch.where(ok[:, None], qc.rel, q.rel),
+            m_off=torch.where(ok[:, None, None], qc.m_off, q.m_off),
+        )
+        lam = torch.where(ok, lam * 0.3, lam * 10.0).clamp(1e-7, 1e7)
+    return s
+
+
+def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Rotations R (P, 3, 3) with ``b − b̄ ≈ R (a − ā)`` for point sets a, b (P, K, 3), least
+    squares, proper."""
+    a0 = a - a.mean(axis=1, keepdims=True)
+    b0 = b - b.mean(axis=1, keepdims=True)
+    u, _, vt = np.linalg.svd(np.swapaxes(a0, 1, 2) @ b0)
+    d = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
+    fix = np.ones((len(a), 3))
+    fix[:, 2] = np.where(d == 0, 1.0, d)
+    return np.asarray(np.swapaxes(vt, 1, 2) @ (fix[:, :, None] * np.swapaxes(u, 1, 2)))
+
+
+def _angles_from_local(local: FloatArray, g: _Group) -> FloatArray:
+    """The group's DoF (P, K) that best give local rotations (P, 3, 3): of the two Euler
+    (X, Y, Z) solutions, the one nearer the joint limits, clipped to them."""
+    lo, hi = DOF_LIMITS_RAD[g.dofs, 0], DOF_LIMITS_RAD[g.dofs, 1]
+    e1 = Rotation.from_matrix(local).as_euler("XYZ")
+    e2 = np.stack([e1[:, 0] + np.pi, np.pi - e1[:, 1], e1[:, 2] + np.pi], axis=1)
+    # each DoF reads the local axis it turns about (its largest coefficient), per radian
+    axis = np.argmax(np.abs(g.coeff), axis=1)
+    per_rad = g.coeff[np.arange(len(axis)), axis]
+    cands = [(((e + np.pi) % (2 * np.pi) - np.pi)[:, axis] / per_rad) for e in (e1, e2)]
+    cost = [(np.maximum(th - hi, 0.0) + np.maximum(lo - th, 0.0)).sum(axis=1) for th in cands]
+    best = np.where((cost[1] < cost[0])[:, None], cands[1], cands[0])
+    return np.asarray(np.clip(best, lo, hi))
+
+
+def _initial_state(markers_m: FloatArray, joints_m: FloatArray, b: _Basis) -> _State:
+    """The reference body placed on each estimate: every rigid group's rotation from its
+    estimated points (Kabsch), the angles from the groups' relative rotations, the root on
+    the pelvis; the inverse kinematics that follows refines it."""
+    pts = np.concatenate([markers_m, joints_m], axis=1)  # (P, 72, 3)
+    p_n = len(pts)
+    rots: list[FloatArray] = []
+    angles = np.zeros((p_n, NUM_DOF))
+    for g in b.groups:
+        r = _kabsch(
+            np.broadcast_to(b.rest_points_m[g.points], (p_n, len(g.points), 3)), pts[:, g.points]
+        )
+        rots.append(r)
+        if g.parent >= 0:
+            local = np.swapaxes(rots[g.parent], 1, 2) @ r
+            angles[:, g.dofs] = _angles_from_local(local, g)
+    root = b.groups[0]
+    r0 = rots[0]
+    a = b.rest_points_m[root.points]
+    t = pts[:, root.points].mean(axis=1) - np.einsum("pij,j->pi", r0, a.mean(axis=0))
+    z = torch.zeros(p_n, _NS, dtype=torch.float64)
+    z[:, 0:2] = 1.0
+    return _State(
+        root_r=torch.from_numpy(np.ascontiguousarray(r0)),
+        root_t=torch.from_numpy(np.einsum("pij,j->pi", r0, b.rest_root_m) + t),
+        angles=torch.from_numpy(angles),
+        z=z,
+    )
+
+
+def _standing_height_m(z: torch.Tensor) -> FloatArray:
+    """The solved bodies' standing heights (P,), m: the vertical chain of their lengths."""
+    b = _basis()
+    chain = torch.tensor([LENGTH_FIELDS.index(k) for k in VERTICAL_CHAIN])
+    lengths = b.f0[chain] * (1.0 + z[:, 2:][:, chain])
+    return np.asarray((z[:, 0] * lengths.sum(1)).numpy())
+
+
+def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
+    d = torch.cdist(q.markers, data.cloud)
+    e_m, _ = _gm(d.min(dim=2).values ** 2, c)
+    e_c, _ = _gm(d.min(dim=1).values ** 2, c)
+    return (e_m.sum(1) + (e_c * data.mask).sum(1)) / (c * c)
+
+
+def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data:
+    """Problems' tensors; clouds padded with far points that no term sees."""
+    p_n = len(clouds)
+    n = max(len(c) for c in clouds)
+    cloud = np.full((p_n, n, 3), _FAR_M)
+    mask = np.zeros((p_n, n))
+    for i, c in enumerate(clouds):
+        cloud[i, : len(c)] = c
+        mask[i, : len(c)] = 1.0
+    return _Data(
+        cloud=torch.from_numpy(cloud),
+        mask=torch.from_numpy(mask),
+        tm=torch.from_numpy(np.ascontiguousarray(tm)),
+        tj=torch.from_numpy(np.ascontiguousarray(tj)),
+    )
+
+
+def _schedule(opt: SolveOptions) -> list[_Weights]:
+    """The solve's steps: the gate shrinking geometrically from the first to the last."""
+    k = max(opt.iterations - 1, 1)
+    return [
+        _Weights(
+            True,
+            opt.gate_start_m * (opt.gate_m / opt.gate_start_m) ** min(i / k, 1.0),
+            opt.data_sigma_m,
+            opt.joint_prior_sigma_m,
+            opt.marker_prior_sigma_m,
+            opt.prior_gate_m,
+        )
+        for i in range(opt.iterations)
+    ]
+
+
+def _run(
+    clouds: Sequence[FloatArray],
+    tm: FloatArray,
+    tj: FloatArray,
+    steps: Sequence[_Weights],
+    opt: SolveOptions,
+    *,
+    start: _State | None = None,
+) -> tuple[_State, torch.Tensor]:
+    """``steps`` of LM on each problem, in chunks, from ``start`` (None: the first guess and
+    the inverse kinematics) -> the states and their selection energies."""
+    b = _basis()
+    states, energies = [], []
+    for lo in range(0, len(clouds), _CHUNK):
+        hi = min(lo + _CHUNK, len(clouds))
+        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi])
+        if start is None:
+            s = _initial_state(tm[lo:hi], tj[lo:hi], b)
+            init = _Weights(False, 0.0, 1.0, 0.03, 0.03, None)
+            s = _levenberg_marquardt(s, data, [init] * opt.init_iterations, opt, b)
+        else:
+            s = start.take(torch.arange(lo, hi))
+        s = _levenberg_marquardt(s, data, steps, opt, b)
+        states.append(s)
+        energies.append(_selection_energy(_pose(s, b), data, opt.selection_gate_m))
+    return _State.cat(states), torch.cat(energies)
+
+
+def solve_skeleton(
+    clouds: Sequence[npt.ArrayLike],
+    markers_m: npt.ArrayLike,
+    joints_m: npt.ArrayLike,
+    *,
+    options: SolveOptions | None = None,
+) -> SolveResult:
+    """Fit the body model to each fused cloud from H hypotheses of the network (module doc).
+
+    Args:
+        clouds: B fused clouds (N_i, 3), world, m (at least 2 points each).
+        markers_m: (H, B, 53, 3) the hypotheses' markers, world, m.
+        joints_m: (H, B, 19, 3) their DeMoCap joints.
+        options: weights and schedule (default :class:`SolveOptions`).
+
+    Raises:
+        ValidationError: shapes that do not match, non-finite values, or a cloud with fewer
+            than 2 points.
+    """
+    opt = options or SolveOptions()
+    pts = [
+        np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64) for c in clouds
+    ]
+    n_b = len(pts)
+    tm = np.asarray(
+        check_finite(check_shape(markers_m, ["H", n_b, NUM_MARKERS, 3], name="markers_m")),
+        np.float64,
+    )
+    tj = np.asarray(
+        check_finite(
+            check_shape(joints_m, [tm.shape[0], n_b, len(DEMOCAP_JOINT_INDEX), 3], name="joints_m")
+        ),
+        np.float64,
+    )
+    for i, p in enumerate(pts):
+        if p.shape[0] < 2:
+            msg = f"cloud {i} has {p.shape[0]} point(s); the skeleton solve needs at least 2"
+            raise ValidationError(msg)
+    if n_b and opt.bend_starts_rad:
+        b = _basis()
+        extra = [_bent(tm[h], tj[h], a, b) for a in opt.bend_starts_rad for h in range(len(tm))]
+        tm = np.concatenate([tm, np.stack([e[0] for e in extra])])
+        tj = np.concatenate([tj, np.stack([e[1] for e in extra])])
+    n_h = tm.shape[0]
+    if n_b == 0:
+        empty = np.zeros((0,))
+        return SolveResult(
+            markers_m=np.zeros((0, NUM_MARKERS, 3)),
+            joints_m=np.zeros((0, len(DEMOCAP_JOINT_INDEX), 3)),
+            poses=np.zeros((0, ROOT_DIM + NUM_DOF)),
+            height_m=empty,
+            energy=empty,
+            hypothesis=np.zeros((0,), np.int64),
+        )
+    # Problems: every (start, frame) pair, start-major. All starts take the first steps; then
+    # only the ``keep_starts`` best of each frame go on (most starts end where another does).
+    frames = np.tile(np.arange(n_b), n_h)
+    flat_clouds = [pts[i] for i in frames]
+    flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
+    steps = _schedule(opt)
+    cut = min(opt.prune_after, len(steps)) if n_h > opt.keep_starts else len(steps)
+    s_all, e_all = _run(flat_clouds, flat_m, flat_j, steps[:cut], opt)
+    alive = np.arange(n_h * n_b)
+    if cut < len(steps):
+        order = np.argsort(e_all.numpy().reshape(n_h, n_b), axis=0, kind="stable")
+        alive = np.sort((order[: opt.keep_starts] * n_b + np.arange(n_b)).reshape(-1))
+        sel = torch.from_numpy(alive)
+        s_all, e_alive = _run(
+            [flat_clouds[i] for i in alive],
+            flat_m[alive],
+            flat_j[alive],
+            steps[cut:],
+            opt,
+            start=s_all.take(sel),
+        )
+        e_all = torch.full((n_h * n_b,), float("inf"), dtype=torch.float64)
+        e_all[sel] = e_alive
+    else:
+        s_all = s_all.take(torch.from_numpy(alive))
+    energy = e_all.numpy().reshape(n_h, n_b)
+    best = np.argmin(energy, axis=0)
+    # the winners' rows among the survivors
+    row = np.searchsorted(alive, best * n_b + np.arange(n_b))
+    s_best = s_all.take(torch.from_numpy(row))
+    q = _pose(s_best, _basis())
+    return SolveResult(
+        markers_m=q.markers.numpy(),
+        joints_m=q.joints.numpy(),
+        poses=s_best.poses(),
+        height_m=_standing_height_m(s_best.z),
+        energy=energy[best, np.arange(n_b)],
+        hypothesis=best.astype(np.int64),
+    )

@@ -1,0 +1,203 @@
+"""The skeleton solve: its derivatives, its shape model, and what it recovers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from mocaprig.errors import ValidationError
+from mocaprig.process.body import (
+    DEMOCAP_JOINT_INDEX,
+    DEMOCAP_JOINTS,
+    DOF_LIMITS_RAD,
+    LENGTH_FIELDS,
+    RADIUS_FIELDS,
+    BodyShape,
+    MarkerSet,
+    forward_kinematics,
+    make_motion,
+    marker_positions,
+    rest_offsets,
+)
+from mocaprig.process.democap import solve as S
+from mocaprig.process.democap.simdata import pose_frames
+
+
+def _take(seed: int) -> tuple[BodyShape, np.ndarray, np.ndarray]:
+    """A sampled body doing jumping jacks: (shape, markers (T, 53, 3), joints (T, 19, 3))."""
+    rng = np.random.default_rng(seed)
+    shape = BodyShape.sample(rng)
+    markers = MarkerSet.for_shape(shape).jittered(rng, sigma_m=0.005)
+    motion = make_motion("jumping_jacks", seconds=1.0, rng=rng, rate_hz=10.0, shape=shape)
+    pf = pose_frames(motion, shape, markers)
+    return shape, pf.markers_m, pf.joints_m
+
+
+def _cloud(markers: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """What a rig might see: most markers, some twice, with noise, and a few stray points."""
+    keep = markers[rng.random(len(markers)) > 0.1]
+    twice = keep[rng.random(len(keep)) < 0.5]
+    strays = markers.mean(0) + rng.uniform(-0.8, 0.8, (4, 3))
+    pts = np.concatenate([keep, twice, strays])
+    return pts + rng.normal(0.0, 0.004, pts.shape)
+
+
+def _turned(p: np.ndarray, deg: float) -> np.ndarray:
+    c = p.reshape(-1, 3).mean(0)
+    r = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+    return np.asarray((p - c) @ r.T + c)
+
+
+def _mpjpe_mm(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b, axis=-1).mean() * 1000.0)
+
+
+def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
+    """The analytic JᵀWr equals half the autograd gradient of the energy, for every term."""
+    _, mk, jt = _take(3)
+    rng = np.random.default_rng(0)
+    clouds = [_cloud(m, rng) for m in mk[:4]]
+    b, opt = S._basis(), S.SolveOptions()
+    tm = mk[:4] + rng.normal(0, 0.02, mk[:4].shape)
+    tj = jt[:4] + rng.normal(0, 0.02, jt[:4].shape)
+    s0 = S._initial_state(tm, tj, b)
+    mid = (b.lo + b.hi) / 2
+    half = (b.hi - b.lo) / 2
+    s = S._State(
+        s0.root_r,
+        s0.root_t,
+        mid + torch.from_numpy(rng.uniform(-0.5, 0.5, (4, 27))) * half,
+        s0.z + torch.from_numpy(rng.normal(0, 0.05, s0.z.shape)),
+    )
+    n = max(len(c) for c in clouds)
+    cloud = np.full((4, n, 3), 1e3)
+    mask = np.zeros((4, n))
+    for i, c in enumerate(clouds):
+        cloud[i, : len(c)], mask[i, : len(c)] = c, 1.0
+    data = S._Data(*(torch.from_numpy(a) for a in (cloud, mask, tm, tj)))
+    for w in (
+        S._Weights(False, 0.0, 1.0, 0.03, 0.03, None),
+        S._Weights(True, 0.05, 0.015, 0.05, 0.08, 0.1),
+    ):
+        q = S._pose(s, b)
+        _, aux = S._energy_terms(q, s, data, w, opt)
+        _, g = S._normal_equations(s, q, aux, data, opt, b)
+        d = torch.zeros(4, S._NP, dtype=torch.float64, requires_grad=True)
+        moved = s.step(d, b.lo - 10.0, b.hi + 10.0)  # no clamp: its gradient would be 0
+        e, _ = S._energy_terms(S._pose(moved, b), moved, data, w, opt)
+        e.sum().backward()  # type: ignore[no-untyped-call]
+        assert d.grad is not None
+        torch.testing.assert_close(d.grad / 2, g, rtol=1e-9, atol=1e-9)
+
+
+def test_the_shape_basis_reproduces_sampled_bodies() -> None:
+    """Rest offsets are exact; the worst marker offset within 2 mm for half of the sampled
+    bodies (1.55-1.95 m) and within 15 mm for all."""
+    b = S._basis()
+    f0 = b.f0.numpy()
+    rng = np.random.default_rng(5)
+    worst = []
+    for _ in range(40):
+        shape = BodyShape.sample(rng)
+        f = np.array([getattr(shape, k) for k in LENGTH_FIELDS + RADIUS_FIELDS])
+        h = shape.height_m / S.REFERENCE_HEIGHT_M
+        rel = f / h
+        off = h * np.tensordot(rel, b.d_off.numpy(), 1)
+        np.testing.assert_allclose(off, rest_offsets(shape), atol=1e-12)
+        mo = h * (b.m_off0.numpy() + np.tensordot(rel - f0, b.d_moff.numpy(), 1))
+        worst.append(np.linalg.norm(mo - MarkerSet.for_shape(shape).offsets_m, axis=1).max())
+    assert np.median(worst) < 0.002
+    assert max(worst) < 0.015
+
+
+def test_the_first_guess_reads_every_angle_off_the_estimate() -> None:
+    """From exact markers and joints of random poses anywhere within the limits (arms over
+    the head, legs crossed), the first guess is near the pose before any step: the spine's
+    half-and-half split and joints with fewer than three DoF are what it approximates."""
+    ref = BodyShape.from_height(S.REFERENCE_HEIGHT_M)
+    rng = np.random.default_rng(0)
+    n = 60
+    poses = np.zeros((n, 33))
+    poses[:, :3] = rng.normal(0, 1, (n, 3))
+    poses[:, 3:6] = rng.normal(0, 0.5, (n, 3))
+    poses[:, 6:] = rng.uniform(DOF_LIMITS_RAD[:, 0], DOF_LIMITS_RAD[:, 1], (n, 27))
+    kin = forward_kinematics(poses, ref)
+    markers = marker_positions(kin, ref, MarkerSet.for_shape(ref))
+    joints = kin.positions_m[:, list(DEMOCAP_JOINT_INDEX)]
+    b = S._basis()
+    guess = S._pose(S._initial_state(markers, joints, b), b).joints.numpy()
+    err = np.linalg.norm(guess - joints, axis=-1)
+    assert np.median(err) < 0.015
+    assert err.mean(axis=1).max() < 0.06
+
+
+def test_solve_recovers_the_body_from_a_noisy_estimate() -> None:
+    shape, mk, jt = _take(7)
+    rng = np.random.default_rng(1)
+    clouds = [_cloud(m, rng) for m in mk]
+    # an estimate 4 cm off everywhere, as a network's might be
+    est_m = mk + rng.normal(0, 0.04, mk.shape)
+    est_j = jt + rng.normal(0, 0.04, jt.shape)
+    res = S.solve_skeleton(clouds, est_m[None], est_j[None])
+    assert _mpjpe_mm(est_j, jt) > 55.0
+    assert _mpjpe_mm(res.joints_m, jt) < 15.0
+    assert _mpjpe_mm(res.markers_m, mk) < 20.0
+    assert np.all(np.abs(res.height_m - shape.height_m) < 0.06)
+    ang = res.poses[:, 6:]
+    assert np.all((ang >= DOF_LIMITS_RAD[:, 0] - 1e-12) & (ang <= DOF_LIMITS_RAD[:, 1] + 1e-12))
+    assert np.all(res.hypothesis == 0)
+
+
+def test_the_start_that_explains_the_cloud_wins() -> None:
+    """A good start and one turned away by 90 deg: the good one is kept, in either order."""
+    _, mk, jt = _take(11)
+    rng = np.random.default_rng(2)
+    clouds = [_cloud(m, rng) for m in mk[:3]]
+    good = (mk[:3] + rng.normal(0, 0.02, mk[:3].shape), jt[:3])
+    bad = (
+        np.array([_turned(m, 90.0) for m in mk[:3]]),
+        np.array([_turned(j, 90.0) for j in jt[:3]]),
+    )
+    for order, want in (((good, bad), 0), ((bad, good), 1)):
+        res = S.solve_skeleton(
+            clouds, np.stack([o[0] for o in order]), np.stack([o[1] for o in order])
+        )
+        assert np.all(res.hypothesis == want)
+        assert _mpjpe_mm(res.joints_m, jt[:3]) < 15.0
+
+
+def test_the_bent_start_turns_the_body_above_the_hips_forward() -> None:
+    _, mk, jt = _take(3)
+    b = S._basis()
+    m2, j2 = S._bent(mk[:1], jt[:1], 0.8, b)
+    legs_m, legs_j = b.leg_points[: len(mk[0])], b.leg_points[len(mk[0]) :]
+    np.testing.assert_array_equal(m2[0, legs_m], mk[0, legs_m])
+    np.testing.assert_array_equal(j2[0, legs_j], jt[0, legs_j])
+    r, l_ = (jt[0, i] for i in b.hip_joints)
+    pivot = (r + l_) / 2
+    for a, c in ((mk[0], m2[0]), (jt[0], j2[0])):  # a turn: distances to the pivot kept
+        np.testing.assert_allclose(
+            np.linalg.norm(a - pivot, axis=1), np.linalg.norm(c - pivot, axis=1), atol=1e-12
+        )
+    neck = DEMOCAP_JOINTS.index("Neck")
+    facing = np.cross(np.array([0.0, 0.0, 1.0]), r - l_)  # forward, for a body facing it
+    lean = np.dot(j2[0, neck] - jt[0, neck], facing / np.linalg.norm(facing))
+    assert lean > 0.2  # the neck went forward by ~ 0.5 m · sin(46 deg)
+    assert j2[0, neck, 2] < jt[0, neck, 2] - 0.1
+
+
+def test_bad_inputs_are_refused() -> None:
+    _, mk, jt = _take(3)
+    cloud = mk[0]
+    with pytest.raises(ValidationError, match="at least 2"):
+        S.solve_skeleton([cloud[:1]], mk[None, :1], jt[None, :1])
+    with pytest.raises(ValidationError, match="markers_m"):
+        S.solve_skeleton([cloud], mk[None, :2], jt[None, :2])
+    with pytest.raises(ValidationError, match="finite"):
+        S.solve_skeleton([cloud * np.nan], mk[None, :1], jt[None, :1])
+    with pytest.raises(ValidationError, match="height_range"):
+        S.SolveOptions(height_range=(1.1, 1.2))
+    empty = S.solve_skeleton([], np.zeros((2, 0, 53, 3)), np.zeros((2, 0, 19, 3)))
+    assert empty.joints_m.shape == (0, 19, 3)
