@@ -7,7 +7,8 @@ direct-regression network are ``DemocapConfig.variant`` values (:func:`build_net
 Training data is simulated at the marker level (:mod:`.simdata`, :mod:`.dataset`);
 :mod:`.train` trains, :mod:`.evaluate` measures, :mod:`.replay` runs the network on a
 calibrated recording and :mod:`.live` on live D415 frame sets. Inference can average a
-rotation ensemble (:mod:`.infer`).
+rotation ensemble (:mod:`.infer`) and, by default offline, fits the body model to the cloud
+from the network's estimates (:mod:`.solve`, the skeleton solve).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ if TYPE_CHECKING:
     )
     from mocaprig.process.democap.model import DemocapNet, build_network
     from mocaprig.process.democap.replay import ReplayResult, run_replay, score_replay
+    from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
     from mocaprig.process.democap.train import TrainOptions
 
 #: The public names by submodule, imported on first use (:mod:`mocaprig.lazy_exports`): most
@@ -60,6 +62,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "model": ("DemocapNet", "build_network"),
     "replay": ("ReplayResult", "run_replay", "score_replay"),
+    "solve": ("SolveOptions", "SolveResult", "solve_skeleton"),
     "train": ("TrainOptions",),
 }
 __getattr__ = lazy_getattr(__name__, _EXPORTS)
@@ -81,6 +84,8 @@ __all__ = [
     "LiveResult",
     "Prediction",
     "ReplayResult",
+    "SolveOptions",
+    "SolveResult",
     "TrainOptions",
     "build_network",
     "cameras_from_calibration",
@@ -91,6 +96,7 @@ __all__ = [
     "run_replay",
     "save_checkpoint",
     "score_replay",
+    "solve_skeleton",
 ]
 
 
