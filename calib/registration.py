@@ -54,6 +54,7 @@ __all__ = [
     "bundle_adjust_camera",
     "coarse_align",
     "kabsch",
+    "kabsch_batch",
     "match_markers",
     "project_points",
     "register_camera",
@@ -134,8 +135,11 @@ def kabsch(src: npt.ArrayLike, dst: npt.ArrayLike, weights: npt.ArrayLike | None
     return _make_T(r, cd - r @ cs)
 
 
-def _kabsch_batch(src: F64, dst: F64) -> F64:
-    """Kabsch for a batch ``(H, k, 3)`` → ``(H, 4, 4)`` (equal weights)."""
+def kabsch_batch(src: npt.ArrayLike, dst: npt.ArrayLike) -> F64:
+    """:func:`kabsch` for a batch of point sets ``(H, k, 3)`` → ``(H, 4, 4)`` (equal weights;
+    no checks: ``k`` >= 3 non-collinear points per set is the caller's)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
     cs = src.mean(axis=1)
     cd = dst.mean(axis=1)
     h = np.einsum("hki,hkj->hij", src - cs[:, None], dst - cd[:, None])
@@ -438,7 +442,7 @@ def coarse_align(
     if len(hyp_s) > max_hypotheses:
         pick = rng.choice(len(hyp_s), size=max_hypotheses, replace=False)
         hyp_s, hyp_d = hyp_s[pick], hyp_d[pick]
-    Ts = _kabsch_batch(s[hyp_s], d[hyp_d])
+    Ts = kabsch_batch(s[hyp_s], d[hyp_d])
     d_tree = cKDTree(d)
     scores = np.empty(len(Ts))
     chunk = max(1, 200_000 // len(s))

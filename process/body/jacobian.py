@@ -71,11 +71,11 @@ _COEFF = torch.from_numpy(
     (_ancestors()[:, None, :, None] * _EULER[None]).reshape(len(JOINTS) * NUM_DOF, -1)
 )  # (26 * 27, 26 * 3)
 _EULER_FLAT = torch.from_numpy(_EULER.reshape(NUM_DOF, -1).copy())
-_PARENT_OR_ROOT = torch.tensor([max(p, 0) for p in PARENTS])
 
 #: The segment each joint's *position* rides on (its parent's; the root's own): the index to
 #: pass to :func:`point_jacobian` for joint positions.
 JOINT_SEGMENT: tuple[int, ...] = tuple(max(p, 0) for p in PARENTS)
+_PARENT_OR_ROOT = torch.tensor(JOINT_SEGMENT)
 
 
 @dataclass(frozen=True, slots=True)

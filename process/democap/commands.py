@@ -279,7 +279,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     ev.add_argument(
         "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
     )
-    _add_rotations(ev)
+    _add_inference_options(ev)
     add_json_flag(ev)
     ev.set_defaults(func=democap_eval)
 
@@ -304,7 +304,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     rn.add_argument(
         "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
     )
-    _add_rotations(rn)
+    _add_inference_options(rn)
     add_json_flag(rn)
     rn.set_defaults(func=democap_run)
 
@@ -371,7 +371,7 @@ examples:
 """
 
 
-def _add_rotations(parser: argparse.ArgumentParser) -> None:
+def _add_inference_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rotations",
         type=int,

@@ -131,6 +131,17 @@ def ensemble_rotations(k: int) -> list[FloatArray]:
     ]
 
 
+def _checked(clouds: Sequence[npt.ArrayLike]) -> list[FloatArray]:
+    """Clouds (N, 3) as float64 arrays.
+
+    Raises:
+        ValidationError: a cloud of the wrong shape or with non-finite values.
+    """
+    return [
+        np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64) for c in clouds
+    ]
+
+
 def _inference_copy(net: DemocapModel) -> DemocapModel:
     """A copy of ``net`` (eval mode) with each Conv2d -> BatchNorm2d pair of a Sequential
     folded into one convolution (the batch norm removed), in channels-last layout."""
@@ -272,11 +283,13 @@ class DemocapPredictor:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
                 than 2 points.
         """
+        return self._hypotheses(_checked(clouds))
+
+    def _hypotheses(
+        self, points: list[FloatArray]
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """:meth:`hypotheses` of clouds already checked."""
         t0 = time.perf_counter()
-        points = [
-            np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64)
-            for c in clouds
-        ]
         k, n, s = len(self._turns), len(points), self.size_px
         if not points:
             nm, nj = self.net.num_markers, self.net.num_joints
@@ -322,13 +335,10 @@ class DemocapPredictor:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
                 than 2 points.
         """
-        points = [
-            np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64)
-            for c in clouds
-        ]
+        points = _checked(clouds)
         if not points:
             return []
-        markers, joints, mk, jt = self.hypotheses(points)
+        markers, joints, mk, jt = self._hypotheses(points)
         n, k = len(points), len(self._turns)
         if not self.solves:
             return [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(n)]

@@ -614,7 +614,7 @@ def replay_span(
         network_s=t_network,
         checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
         rotations=pred.rotations,
-        solve=bool(getattr(pred, "solves", False)),
+        solve=pred.solves,
     )
 
 

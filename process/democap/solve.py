@@ -61,6 +61,7 @@ import numpy.typing as npt
 import torch
 from scipy.spatial.transform import Rotation
 
+from mocaprig.calib.registration import kabsch_batch
 from mocaprig.errors import ValidationError
 from mocaprig.process.body.jacobian import JOINT_SEGMENT, point_jacobian, pose_geometry
 from mocaprig.process.body.kinematics import (
@@ -435,7 +436,7 @@ def _shape_jacobians(s: _State, q: _Posed, b: _Basis) -> tuple[torch.Tensor, tor
         1, 2, 0
     )
     # A joint moves with its own offset (in its parent's frame) and with every ancestor's.
-    par_rot = q.rot[:, [max(p, 0) for p in PARENTS]]
+    par_rot = q.rot[:, list(JOINT_SEGMENT)]
     moved = par_rot @ d_off  # (P, 26, 3, 17)
     chain = [moved[:, 0] * 0.0]
     for j in range(1, len(JOINTS)):
@@ -460,6 +461,17 @@ class _Data:
     tj: torch.Tensor  # (P, 19, 3) and joints
 
 
+def _nearest(
+    q: _Posed, data: _Data
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each model marker's nearest cloud point (distance, index; (P, 53)) and each cloud
+    point's nearest model marker (distance, index; (P, N))."""
+    d = torch.cdist(q.markers, data.cloud)
+    d_m, nn_m = d.min(dim=2)
+    d_c, nn_c = d.min(dim=1)
+    return d_m, nn_m, d_c, nn_c
+
+
 @dataclass(frozen=True, slots=True)
 class _Weights:
     """Which terms a run uses and how (the init stage: network only, no gate)."""
@@ -479,9 +491,7 @@ def _energy_terms(
     aux: dict[str, torch.Tensor] = {}
     e = torch.zeros(q.markers.shape[0], dtype=torch.float64)
     if w.data:
-        d = torch.cdist(q.markers, data.cloud)  # (P, 53, N)
-        d_m, nn_m = d.min(dim=2)
-        d_c, nn_c = d.min(dim=1)
+        d_m, nn_m, d_c, nn_c = _nearest(q, data)
         e_m, w_m = _gm(d_m * d_m, w.gate_m)
         e_c, w_c = _gm(d_c * d_c, w.gate_m)
         w_c = w_c * data.mask
@@ -605,18 +615,6 @@ def _levenberg_marquardt(
     return s
 
 
-def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Rotations R (P, 3, 3) with ``b − b̄ ≈ R (a − ā)`` for point sets a, b (P, K, 3), least
-    squares, proper."""
-    a0 = a - a.mean(axis=1, keepdims=True)
-    b0 = b - b.mean(axis=1, keepdims=True)
-    u, _, vt = np.linalg.svd(np.swapaxes(a0, 1, 2) @ b0)
-    d = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
-    fix = np.ones((len(a), 3))
-    fix[:, 2] = np.where(d == 0, 1.0, d)
-    return np.asarray(np.swapaxes(vt, 1, 2) @ (fix[:, :, None] * np.swapaxes(u, 1, 2)))
-
-
 def _angles_from_local(local: FloatArray, g: _Group) -> FloatArray:
     """The group's DoF (P, K) that best give local rotations (P, 3, 3): of the two Euler
     (X, Y, Z) solutions, the one nearer the joint limits, clipped to them."""
@@ -640,23 +638,22 @@ def _initial_state(markers_m: FloatArray, joints_m: FloatArray, b: _Basis) -> _S
     p_n = len(pts)
     rots: list[FloatArray] = []
     angles = np.zeros((p_n, NUM_DOF))
+    root_t = np.zeros((p_n, 3))
     for g in b.groups:
-        r = _kabsch(
-            np.broadcast_to(b.rest_points_m[g.points], (p_n, len(g.points), 3)), pts[:, g.points]
-        )
+        rest = np.broadcast_to(b.rest_points_m[g.points], (p_n, len(g.points), 3))
+        t_group = kabsch_batch(rest, pts[:, g.points])  # (P, 4, 4): rest body -> estimate
+        r = t_group[:, :3, :3]
         rots.append(r)
         if g.parent >= 0:
             local = np.swapaxes(rots[g.parent], 1, 2) @ r
             angles[:, g.dofs] = _angles_from_local(local, g)
-    root = b.groups[0]
-    r0 = rots[0]
-    a = b.rest_points_m[root.points]
-    t = pts[:, root.points].mean(axis=1) - np.einsum("pij,j->pi", r0, a.mean(axis=0))
+        else:  # the root's group carries the root joint to where the estimate has it
+            root_t = np.einsum("pij,j->pi", r, b.rest_root_m) + t_group[:, :3, 3]
     z = torch.zeros(p_n, _NS, dtype=torch.float64)
     z[:, 0:2] = 1.0
     return _State(
-        root_r=torch.from_numpy(np.ascontiguousarray(r0)),
-        root_t=torch.from_numpy(np.einsum("pij,j->pi", r0, b.rest_root_m) + t),
+        root_r=torch.from_numpy(np.ascontiguousarray(rots[0])),
+        root_t=torch.from_numpy(root_t),
         angles=torch.from_numpy(angles),
         z=z,
     )
@@ -671,9 +668,10 @@ def _standing_height_m(z: torch.Tensor) -> FloatArray:
 
 
 def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
-    d = torch.cdist(q.markers, data.cloud)
-    e_m, _ = _gm(d.min(dim=2).values ** 2, c)
-    e_c, _ = _gm(d.min(dim=1).values ** 2, c)
+    """The data terms at gate ``c``, unscaled (P,): how well each solution explains its cloud."""
+    d_m, _, d_c, _ = _nearest(q, data)
+    e_m, _ = _gm(d_m**2, c)
+    e_c, _ = _gm(d_c**2, c)
     return (e_m.sum(1) + (e_c * data.mask).sum(1)) / (c * c)
 
 
