@@ -3,11 +3,11 @@
 Held-out simulated clouds (the ``in-distribution`` test stream, seed ``--seed``, 4 cameras)
 go through the committed ``lite`` network (the 3-turn ensemble, as shipped) and then through
 :func:`mocaprig.process.democap.solve.solve_skeleton` with 1 start (the ensemble's estimate),
-the default starts (the ensemble's, each turn's and one bent at the hips: 5) and every
-configuration in between; each is timed in rounds that interleave them (a shared machine:
-a load change hits all alike), as seconds per frame and as a ratio to the network's time in
-the same round, with its MPJPE against the truth (17 joints; a sanity figure, the
-evaluations are ``mocaprig democap eval``).
+the default starts (the ensemble's and each turn's, and each of them bent at the hips: 8) with
+and without the limb search after them, and configurations in between; each is timed in
+rounds that interleave them (a shared machine: a load change hits all alike), as seconds
+per frame and as a ratio to the network's time in the same round, with its MPJPE against
+the truth (17 joints; a sanity figure, the evaluations are ``mocaprig democap eval``).
 
 Run (≈ 1 min on the 2-core machine)::
 
@@ -63,11 +63,19 @@ def main() -> int:
         return np.concatenate([markers[None], mk]), np.concatenate([joints[None], jt]), wall
 
     hm, hj, _ = hypotheses()
+    bare = SolveOptions(limb_search=False)
     configs = {
-        "1 start, no bent one": (1, SolveOptions(bend_starts_rad=())),
-        "1 start + bent": (1, SolveOptions()),
-        f"{k + 1} starts, no bent one": (k + 1, SolveOptions(bend_starts_rad=())),
-        f"{k + 1} starts + bent (default)": (k + 1, SolveOptions()),
+        "1 start, no bent one, no limb search": (
+            1,
+            SolveOptions(bend_starts_rad=(), limb_search=False),
+        ),
+        "1 start + bent, no limb search": (1, bare),
+        f"{k + 1} starts, no bent one, no limb search": (
+            k + 1,
+            SolveOptions(bend_starts_rad=(), limb_search=False),
+        ),
+        f"{k + 1} starts + bent, no limb search": (k + 1, bare),
+        f"{k + 1} starts + bent + limb search (default)": (k + 1, SolveOptions()),
     }
     rows: dict[str, list[float]] = {c: [] for c in configs}
     net_s: list[float] = []

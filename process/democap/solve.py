@@ -42,7 +42,11 @@ network's known failure is to straighten a body bent over). All starts take the 
 ``prune_after`` steps; only the ``keep_starts`` best of each frame take the rest.
 The hypothesis whose solution explains the cloud best (the first two terms at
 ``selection_gate_m``, no network prior) wins: the turns disagree most where the network is
-unsure, and the cloud decides.
+unsure, and the cloud decides. Last, the **limb search** (``limb_search``): each limb of the
+winner in turn is set to every configuration of a coarse grid of its main angles and kept
+where it explains the cloud best, a few more steps follow, and the result replaces the
+winner where it explains the cloud better (a limb the network put elsewhere sits in a
+minimum no gradient step leaves; solved from the truth, such frames reach a lower energy).
 
 What it assumes: the subject is one of our bodies (proportions near Drillis & Contini,
 markers where :class:`MarkerSet` puts them, rigid on their segments). The ``off-model``
@@ -52,6 +56,7 @@ evaluation protocol measures what it costs when they are not (docs/democap.md).
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -83,6 +88,7 @@ from mocaprig.process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
     DEMOCAP_JOINTS,
     DOF_LIMITS_RAD,
+    DOF_NAMES,
     JOINTS,
     NUM_DOF,
     PARENTS,
@@ -128,6 +134,13 @@ class SolveOptions:
         prune_after, keep_starts: after ``prune_after`` steps of the solve only the
             ``keep_starts`` starts of each frame that explain its cloud best go on (the others
             mostly end where one of them does; the cost of the rest is theirs alone).
+        limb_search: after the solve, each limb of the winner in turn is set to every
+            configuration of a coarse grid of its angles (216 per arm, 180 per leg) and kept
+            where it explains the cloud best, then ``refine_iterations`` steps follow (the
+            gate ``refine_gate_start_m`` -> ``gate_m``); the result replaces the winner only
+            where it explains the cloud better. A limb the network put on the wrong side of
+            the body (a hand by the shin of a body bent over) sits in a minimum that no
+            gradient step leaves.
     """
 
     data_sigma_m: float = 0.015
@@ -147,6 +160,9 @@ class SolveOptions:
     bend_starts_rad: tuple[float, ...] = (0.8,)
     prune_after: int = 10
     keep_starts: int = 2
+    limb_search: bool = True
+    refine_iterations: int = 12
+    refine_gate_start_m: float = 0.10
 
     def __post_init__(self) -> None:
         for name in (
@@ -161,14 +177,18 @@ class SolveOptions:
             "length_sigma",
             "girth_mean",
             "girth_sigma",
+            "refine_gate_start_m",
         ):
             check_positive(float(getattr(self, name)), name=f"SolveOptions.{name}")
         lo, hi = self.height_range
         if not 0 < lo < 1 < hi:
             msg = f"SolveOptions.height_range must be (low < 1 < high), got {self.height_range}"
             raise ValidationError(msg)
-        if self.init_iterations < 0 or self.iterations < 0 or self.prune_after < 0:
-            msg = "SolveOptions.init_iterations, .iterations and .prune_after must be >= 0"
+        if min(self.init_iterations, self.iterations, self.prune_after, self.refine_iterations) < 0:
+            msg = (
+                "SolveOptions.init_iterations, .iterations, .prune_after and "
+                ".refine_iterations must be >= 0"
+            )
             raise ValidationError(msg)
         if self.keep_starts < 1:
             msg = f"SolveOptions.keep_starts must be >= 1, got {self.keep_starts}"
@@ -675,6 +695,96 @@ def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
     return (e_m.sum(1) + (e_c * data.mask).sum(1)) / (c * c)
 
 
+#: The limb search's grids: per limb, the joint whose subtree moves, the DoF and the values
+#: (degrees) of each, every combination tried; the other DoF of the limb (forearm
+#: pronation, the ankle) keep their values.
+_LIMB_GRIDS: tuple[tuple[str, tuple[tuple[str, tuple[float, ...]], ...]], ...] = tuple(
+    (
+        f"{side.capitalize()}{'Arm' if arm else 'UpLeg'}",
+        (
+            (f"{side}_shoulder_flexion", (-30.0, 0.0, 45.0, 90.0, 135.0, 180.0)),
+            (f"{side}_shoulder_abduction", (0.0, 45.0, 90.0, 135.0)),
+            (f"{side}_shoulder_internal_rotation", (-60.0, 0.0, 60.0)),
+            (f"{side}_elbow_flexion", (0.0, 60.0, 120.0)),
+        )
+        if arm
+        else (
+            (f"{side}_hip_flexion", (-20.0, 0.0, 40.0, 80.0, 120.0)),
+            (f"{side}_hip_abduction", (-15.0, 0.0, 30.0)),
+            (f"{side}_hip_internal_rotation", (-40.0, 0.0, 30.0)),
+            (f"{side}_knee_flexion", (0.0, 45.0, 90.0, 135.0)),
+        ),
+    )
+    for arm in (True, False)
+    for side in ("left", "right")
+)
+#: Frames per batch of the limb search (each frame poses every candidate of a limb).
+_LIMB_CHUNK = 16
+
+
+@dataclass(frozen=True, slots=True)
+class _Limb:
+    dofs: torch.Tensor  # (K,) the DoF the grid sets
+    grid: torch.Tensor  # (C, K) rad, within the limits
+    markers: torch.Tensor  # (53,) bool: the markers that move with the limb
+
+
+@functools.cache
+def _limbs() -> tuple[_Limb, ...]:
+    marker_joint = _basis().marker_joint.numpy()
+    out = []
+    for top, table in _LIMB_GRIDS:
+        sub = {JOINTS.index(top)}
+        for j in range(len(JOINTS)):
+            if PARENTS[j] in sub:
+                sub.add(j)
+        dofs = [DOF_NAMES.index(name) for name, _ in table]
+        grid = np.deg2rad(np.array(list(itertools.product(*(v for _, v in table)))))
+        grid = np.clip(grid, DOF_LIMITS_RAD[dofs, 0], DOF_LIMITS_RAD[dofs, 1])
+        out.append(
+            _Limb(
+                dofs=torch.tensor(dofs),
+                grid=torch.from_numpy(grid),
+                markers=torch.from_numpy(np.isin(marker_joint, sorted(sub))),
+            )
+        )
+    return tuple(out)
+
+
+def _limb_search(s: _State, data: _Data, c: float) -> _State:
+    """Each limb in turn set to the configuration of its grid (or kept as it is) whose markers
+    explain the cloud best at gate ``c`` (the selection energy; the other markers held)."""
+    b = _basis()
+    angles = s.angles.clone()
+    p_n = angles.shape[0]
+    for limb in _limbs():
+        n_c = limb.grid.shape[0] + 1  # candidate 0: as it is
+        for lo in range(0, p_n, _LIMB_CHUNK):
+            hi = min(lo + _LIMB_CHUNK, p_n)
+            p = hi - lo
+            cand = angles[lo:hi, None].repeat(1, n_c, 1)
+            cand[:, 1:, limb.dofs] = limb.grid
+            rep = _State(
+                s.root_r[lo:hi].repeat_interleave(n_c, 0),
+                s.root_t[lo:hi].repeat_interleave(n_c, 0),
+                cand.reshape(p * n_c, NUM_DOF),
+                s.z[lo:hi].repeat_interleave(n_c, 0),
+            )
+            mk = _pose(rep, b).markers.reshape(p, n_c, NUM_MARKERS, 3)
+            cloud, mask = data.cloud[lo:hi], data.mask[lo:hi]
+            moving = mk[:, :, limb.markers]  # (p, C, m, 3)
+            d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
+            # each point's nearest marker: the held markers' (the same for every candidate)
+            held = torch.cdist(mk[:, 0, ~limb.markers], cloud).min(dim=1).values  # (p, N)
+            d_c = torch.minimum(d.min(dim=2).values, held[:, None])
+            e_m, _ = _gm(d.min(dim=3).values ** 2, c)
+            e_c, _ = _gm(d_c**2, c)
+            e = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
+            best = e.argmin(dim=1)
+            angles[lo:hi] = cand[torch.arange(p), best]
+    return _State(s.root_r, s.root_t, angles, s.z)
+
+
 def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data:
     """Problems' tensors; clouds padded with far points that no term sees."""
     p_n = len(clouds)
@@ -818,14 +928,49 @@ def solve_skeleton(
     energy = e_all.numpy().reshape(n_h, n_b)
     best = np.argmin(energy, axis=0)
     # the winners' rows among the survivors
-    row = np.searchsorted(alive, best * n_b + np.arange(n_b))
-    s_best = s_all.take(torch.from_numpy(row))
+    won = best * n_b + np.arange(n_b)
+    s_best = s_all.take(torch.from_numpy(np.searchsorted(alive, won)))
+    e_best = torch.from_numpy(energy[best, np.arange(n_b)].copy())
+    if opt.limb_search:
+        s_best, e_best = _search_limbs(pts, flat_m[won], flat_j[won], s_best, e_best, opt)
     q = _pose(s_best, _basis())
     return SolveResult(
         markers_m=q.markers.numpy(),
         joints_m=q.joints.numpy(),
         poses=s_best.poses(),
         height_m=_standing_height_m(s_best.z),
-        energy=energy[best, np.arange(n_b)],
+        energy=e_best.numpy(),
         hypothesis=best.astype(np.int64),
     )
+
+
+def _search_limbs(
+    clouds: Sequence[FloatArray],
+    tm: FloatArray,
+    tj: FloatArray,
+    s: _State,
+    energy: torch.Tensor,
+    opt: SolveOptions,
+) -> tuple[_State, torch.Tensor]:
+    """The limb search and its refinement (:attr:`SolveOptions.limb_search`) from the
+    solutions ``s`` with selection energies ``energy`` (B,); a frame keeps the better."""
+    searched = []
+    for lo in range(0, len(clouds), _CHUNK):
+        hi = min(lo + _CHUNK, len(clouds))
+        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi])
+        searched.append(_limb_search(s.take(torch.arange(lo, hi)), data, opt.selection_gate_m))
+    k = max(opt.refine_iterations - 1, 1)
+    steps = [
+        _Weights(
+            True,
+            opt.refine_gate_start_m * (opt.gate_m / opt.refine_gate_start_m) ** (i / k),
+            opt.data_sigma_m,
+            opt.joint_prior_sigma_m,
+            opt.marker_prior_sigma_m,
+            opt.prior_gate_m,
+        )
+        for i in range(opt.refine_iterations)
+    ]
+    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=_State.cat(searched))
+    better = e_new < energy
+    return s_new.where(better, s), torch.where(better, e_new, energy)

@@ -12,10 +12,12 @@ from mocaprig.process.body import (
     DEMOCAP_JOINT_INDEX,
     DEMOCAP_JOINTS,
     DOF_LIMITS_RAD,
+    DOF_NAMES,
     LENGTH_FIELDS,
     RADIUS_FIELDS,
     BodyShape,
     MarkerSet,
+    democap_joints,
     forward_kinematics,
     make_motion,
     marker_positions,
@@ -186,6 +188,50 @@ def test_the_bent_start_turns_the_body_above_the_hips_forward() -> None:
     lean = np.dot(j2[0, neck] - jt[0, neck], facing / np.linalg.norm(facing))
     assert lean > 0.2  # the neck went forward by ~ 0.5 m · sin(46 deg)
     assert j2[0, neck, 2] < jt[0, neck, 2] - 0.1
+
+
+def test_the_limb_search_frees_an_arm_stuck_on_the_wrong_side() -> None:
+    """An estimate right but for the left arm (hanging where the truth holds it up and out):
+    the gradient steps leave it where it is, the limb search brings it back."""
+    rng = np.random.default_rng(4)
+    shape = BodyShape.sample(rng)
+    ms = MarkerSet.for_shape(shape)
+    motion = make_motion("jumping_jacks", seconds=1.0, rng=rng, rate_hz=10.0, shape=shape)
+    abd = DOF_NAMES.index("left_shoulder_abduction")
+    truth = motion.poses[np.argsort(motion.poses[:, 6 + abd])[-3:]]  # arms up the most
+    assert np.all(np.rad2deg(truth[:, 6 + abd]) > 80.0)
+    wrong = truth.copy()
+    for name, deg in (("abduction", 0.0), ("flexion", 0.0), ("internal_rotation", 0.0)):
+        wrong[:, 6 + DOF_NAMES.index(f"left_shoulder_{name}")] = np.deg2rad(deg)
+    kin_t, kin_w = forward_kinematics(truth, shape), forward_kinematics(wrong, shape)
+    mk, jt = marker_positions(kin_t, shape, ms), democap_joints(kin_t)
+    est_m, est_j = marker_positions(kin_w, shape, ms), democap_joints(kin_w)
+    clouds = [_cloud(m, rng) for m in mk]
+    hand = DEMOCAP_JOINTS.index("LeftHand")
+    assert np.all(np.linalg.norm(est_j[:, hand] - jt[:, hand], axis=-1) > 0.5)
+    off = S.solve_skeleton(
+        clouds, est_m[None], est_j[None], options=S.SolveOptions(limb_search=False)
+    )
+    on = S.solve_skeleton(clouds, est_m[None], est_j[None])
+    assert np.all(np.linalg.norm(off.joints_m[:, hand] - jt[:, hand], axis=-1) > 0.3)
+    assert np.all(np.linalg.norm(on.joints_m[:, hand] - jt[:, hand], axis=-1) < 0.1)
+    assert _mpjpe_mm(on.joints_m, jt) < 15.0
+    assert np.all(on.energy < off.energy)
+
+
+def test_the_limb_grids_cover_each_limb_within_its_limits() -> None:
+    limbs = S._limbs()
+    assert len(limbs) == 4
+    moving = np.zeros(len(limbs[0].markers), int)
+    for limb in limbs:
+        lo, hi = DOF_LIMITS_RAD[limb.dofs.numpy()].T
+        g = limb.grid.numpy()
+        assert np.all((g >= lo) & (g <= hi))
+        assert len(np.unique(g, axis=0)) == len(g) >= 150
+        moving += limb.markers.numpy()
+    assert moving.max() == 1  # no marker moves with two limbs
+    # the trunk's markers (pelvis, spine, head, clavicles) move with none
+    assert 10 <= int((moving == 0).sum()) < len(moving) // 2
 
 
 def test_bad_inputs_are_refused() -> None:
