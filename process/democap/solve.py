@@ -136,9 +136,12 @@ class SolveOptions:
             mostly end where one of them does; the cost of the rest is theirs alone).
         limb_search: after the solve, each limb of the winner in turn is set to every
             configuration of a coarse grid of its angles (216 per arm, 180 per leg) and kept
-            where it explains the cloud best, then ``refine_iterations`` steps follow (the
-            gate ``refine_gate_start_m`` -> ``gate_m``); the result replaces the winner only
-            where it explains the cloud better. A limb the network put on the wrong side of
+            where it explains the cloud best, scored at the gate ``limb_gate_m`` (wide: a
+            grid node is decimetres from the truth at the hand), then moved by ± half a grid
+            step per angle where that explains it better at ``limb_fine_gate_m``; then
+            ``refine_iterations`` steps follow (the gate ``refine_gate_start_m`` ->
+            ``gate_m``), and the result replaces the winner only where it explains the cloud
+            better (at ``selection_gate_m``). A limb the network put on the wrong side of
             the body (a hand by the shin of a body bent over) sits in a minimum that no
             gradient step leaves.
     """
@@ -161,6 +164,8 @@ class SolveOptions:
     prune_after: int = 10
     keep_starts: int = 2
     limb_search: bool = True
+    limb_gate_m: float = 0.25
+    limb_fine_gate_m: float = 0.10
     refine_iterations: int = 12
     refine_gate_start_m: float = 0.10
 
@@ -178,6 +183,8 @@ class SolveOptions:
             "girth_mean",
             "girth_sigma",
             "refine_gate_start_m",
+            "limb_gate_m",
+            "limb_fine_gate_m",
         ):
             check_positive(float(getattr(self, name)), name=f"SolveOptions.{name}")
         lo, hi = self.height_range
@@ -726,6 +733,7 @@ _LIMB_CHUNK = 16
 class _Limb:
     dofs: torch.Tensor  # (K,) the DoF the grid sets
     grid: torch.Tensor  # (C, K) rad, within the limits
+    fine: torch.Tensor  # (F, K) rad: ± half the grid's step per DoF, every combination
     markers: torch.Tensor  # (53,) bool: the markers that move with the limb
 
 
@@ -741,48 +749,76 @@ def _limbs() -> tuple[_Limb, ...]:
         dofs = [DOF_NAMES.index(name) for name, _ in table]
         grid = np.deg2rad(np.array(list(itertools.product(*(v for _, v in table)))))
         grid = np.clip(grid, DOF_LIMITS_RAD[dofs, 0], DOF_LIMITS_RAD[dofs, 1])
+        half = [np.deg2rad(np.diff(v).min() / 2.0) for _, v in table]
+        fine = np.array(list(itertools.product(*((-h, 0.0, h) for h in half))))
+        fine = fine[np.abs(fine).sum(axis=1) > 0]  # "as it is" is candidate 0 already
         out.append(
             _Limb(
                 dofs=torch.tensor(dofs),
                 grid=torch.from_numpy(grid),
+                fine=torch.from_numpy(fine),
                 markers=torch.from_numpy(np.isin(marker_joint, sorted(sub))),
             )
         )
     return tuple(out)
 
 
-def _limb_search(s: _State, data: _Data, c: float) -> _State:
+def _limb_search(s: _State, data: _Data, coarse_gate_m: float, fine_gate_m: float) -> _State:
     """Each limb in turn set to the configuration of its grid (or kept as it is) whose markers
-    explain the cloud best at gate ``c`` (the selection energy; the other markers held)."""
-    b = _basis()
+    explain the cloud best at gate ``coarse_gate_m`` (the selection energy; the other markers
+    held), then to the best of that configuration moved by ± half a grid step per angle, at
+    ``fine_gate_m``."""
     angles = s.angles.clone()
-    p_n = angles.shape[0]
     for limb in _limbs():
-        n_c = limb.grid.shape[0] + 1  # candidate 0: as it is
-        for lo in range(0, p_n, _LIMB_CHUNK):
-            hi = min(lo + _LIMB_CHUNK, p_n)
-            p = hi - lo
-            cand = angles[lo:hi, None].repeat(1, n_c, 1)
-            cand[:, 1:, limb.dofs] = limb.grid
-            rep = _State(
-                s.root_r[lo:hi].repeat_interleave(n_c, 0),
-                s.root_t[lo:hi].repeat_interleave(n_c, 0),
-                cand.reshape(p * n_c, NUM_DOF),
-                s.z[lo:hi].repeat_interleave(n_c, 0),
-            )
-            mk = _pose(rep, b).markers.reshape(p, n_c, NUM_MARKERS, 3)
-            cloud, mask = data.cloud[lo:hi], data.mask[lo:hi]
-            moving = mk[:, :, limb.markers]  # (p, C, m, 3)
-            d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
-            # each point's nearest marker: the held markers' (the same for every candidate)
-            held = torch.cdist(mk[:, 0, ~limb.markers], cloud).min(dim=1).values  # (p, N)
-            d_c = torch.minimum(d.min(dim=2).values, held[:, None])
-            e_m, _ = _gm(d.min(dim=3).values ** 2, c)
-            e_c, _ = _gm(d_c**2, c)
-            e = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
-            best = e.argmin(dim=1)
-            angles[lo:hi] = cand[torch.arange(p), best]
+        angles = _limb_pass(s, angles, data, limb, limb.grid, coarse_gate_m, relative=False)
+        angles = _limb_pass(s, angles, data, limb, limb.fine, fine_gate_m, relative=True)
     return _State(s.root_r, s.root_t, angles, s.z)
+
+
+def _limb_pass(
+    s: _State,
+    angles: torch.Tensor,
+    data: _Data,
+    limb: _Limb,
+    grid: torch.Tensor,
+    c: float,
+    *,
+    relative: bool,
+) -> torch.Tensor:
+    """``angles`` (P, 27) with the limb's DoF set to the best of ``grid`` (C, K; offsets from
+    the current values when ``relative``) or kept, scored at gate ``c``."""
+    b = _basis()
+    out = angles.clone()
+    p_n = angles.shape[0]
+    n_c = grid.shape[0] + 1  # candidate 0: as it is
+    for lo in range(0, p_n, _LIMB_CHUNK):
+        hi = min(lo + _LIMB_CHUNK, p_n)
+        p = hi - lo
+        cand = angles[lo:hi, None].repeat(1, n_c, 1)
+        if relative:
+            moved = cand[:, 1:][..., limb.dofs] + grid
+            cand[:, 1:, limb.dofs] = torch.clamp(moved, b.lo[limb.dofs], b.hi[limb.dofs])
+        else:
+            cand[:, 1:, limb.dofs] = grid
+        rep = _State(
+            s.root_r[lo:hi].repeat_interleave(n_c, 0),
+            s.root_t[lo:hi].repeat_interleave(n_c, 0),
+            cand.reshape(p * n_c, NUM_DOF),
+            s.z[lo:hi].repeat_interleave(n_c, 0),
+        )
+        mk = _pose(rep, b).markers.reshape(p, n_c, NUM_MARKERS, 3)
+        cloud, mask = data.cloud[lo:hi], data.mask[lo:hi]
+        moving = mk[:, :, limb.markers]  # (p, C, m, 3)
+        d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
+        # each point's nearest marker: the held markers' (the same for every candidate)
+        held = torch.cdist(mk[:, 0, ~limb.markers], cloud).min(dim=1).values  # (p, N)
+        d_c = torch.minimum(d.min(dim=2).values, held[:, None])
+        e_m, _ = _gm(d.min(dim=3).values ** 2, c)
+        e_c, _ = _gm(d_c**2, c)
+        e = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
+        best = e.argmin(dim=1)
+        out[lo:hi] = cand[torch.arange(p), best]
+    return out
 
 
 def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data:
@@ -958,7 +994,9 @@ def _search_limbs(
     for lo in range(0, len(clouds), _CHUNK):
         hi = min(lo + _CHUNK, len(clouds))
         data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi])
-        searched.append(_limb_search(s.take(torch.arange(lo, hi)), data, opt.selection_gate_m))
+        searched.append(
+            _limb_search(s.take(torch.arange(lo, hi)), data, opt.limb_gate_m, opt.limb_fine_gate_m)
+        )
     k = max(opt.refine_iterations - 1, 1)
     steps = [
         _Weights(
