@@ -287,20 +287,19 @@ def _groups(marker_joint: npt.NDArray[np.int64]) -> tuple[_Group, ...]:
     return tuple(out)
 
 
+def _subtree(*tops: str) -> npt.NDArray[np.bool_]:
+    """(26,): which joints are one of ``tops`` or below one of them."""
+    under = np.zeros(len(JOINTS), dtype=bool)
+    under[[JOINTS.index(t) for t in tops]] = True
+    for j in range(1, len(JOINTS)):  # parents come before their children
+        under[j] |= under[PARENTS[j]]
+    return under
+
+
 def _leg_points(marker_joint: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
     """(72,): which of the 53 markers and 19 DeMoCap joints are on a leg (hip joint down)."""
-    hips = {JOINTS.index("RightUpLeg"), JOINTS.index("LeftUpLeg")}
-
-    def on_leg(j: int) -> bool:
-        while j > 0:
-            if j in hips:
-                return True
-            j = PARENTS[j]
-        return False
-
-    return np.array(
-        [on_leg(int(j)) for j in marker_joint] + [on_leg(j) for j in DEMOCAP_JOINT_INDEX]
-    )
+    legs = _subtree("RightUpLeg", "LeftUpLeg")
+    return np.concatenate([legs[marker_joint], legs[list(DEMOCAP_JOINT_INDEX)]])
 
 
 def _bent(
@@ -742,10 +741,6 @@ def _limbs() -> tuple[_Limb, ...]:
     marker_joint = _basis().marker_joint.numpy()
     out = []
     for top, table in _LIMB_GRIDS:
-        sub = {JOINTS.index(top)}
-        for j in range(len(JOINTS)):
-            if PARENTS[j] in sub:
-                sub.add(j)
         dofs = [DOF_NAMES.index(name) for name, _ in table]
         grid = np.deg2rad(np.array(list(itertools.product(*(v for _, v in table)))))
         grid = np.clip(grid, DOF_LIMITS_RAD[dofs, 0], DOF_LIMITS_RAD[dofs, 1])
@@ -757,7 +752,7 @@ def _limbs() -> tuple[_Limb, ...]:
                 dofs=torch.tensor(dofs),
                 grid=torch.from_numpy(grid),
                 fine=torch.from_numpy(fine),
-                markers=torch.from_numpy(np.isin(marker_joint, sorted(sub))),
+                markers=torch.from_numpy(_subtree(top)[marker_joint]),
             )
         )
     return tuple(out)
@@ -768,7 +763,7 @@ def _limb_search(s: _State, data: _Data, coarse_gate_m: float, fine_gate_m: floa
     explain the cloud best at gate ``coarse_gate_m`` (the selection energy; the other markers
     held), then to the best of that configuration moved by ± half a grid step per angle, at
     ``fine_gate_m``."""
-    angles = s.angles.clone()
+    angles = s.angles
     for limb in _limbs():
         angles = _limb_pass(s, angles, data, limb, limb.grid, coarse_gate_m, relative=False)
         angles = _limb_pass(s, angles, data, limb, limb.fine, fine_gate_m, relative=True)
@@ -838,19 +833,24 @@ def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data
     )
 
 
-def _schedule(opt: SolveOptions) -> list[_Weights]:
-    """The solve's steps: the gate shrinking geometrically from the first to the last."""
-    k = max(opt.iterations - 1, 1)
+def _schedule(
+    opt: SolveOptions, *, gate_start_m: float | None = None, iterations: int | None = None
+) -> list[_Weights]:
+    """The solve's steps (``iterations``, default ``opt.iterations``): the gate shrinking
+    geometrically from ``gate_start_m`` (default ``opt.gate_start_m``) to ``opt.gate_m``."""
+    start = opt.gate_start_m if gate_start_m is None else gate_start_m
+    n = opt.iterations if iterations is None else iterations
+    k = max(n - 1, 1)
     return [
         _Weights(
             True,
-            opt.gate_start_m * (opt.gate_m / opt.gate_start_m) ** min(i / k, 1.0),
+            start * (opt.gate_m / start) ** min(i / k, 1.0),
             opt.data_sigma_m,
             opt.joint_prior_sigma_m,
             opt.marker_prior_sigma_m,
             opt.prior_gate_m,
         )
-        for i in range(opt.iterations)
+        for i in range(n)
     ]
 
 
@@ -862,9 +862,11 @@ def _run(
     opt: SolveOptions,
     *,
     start: _State | None = None,
+    search_limbs: bool = False,
 ) -> tuple[_State, torch.Tensor]:
     """``steps`` of LM on each problem, in chunks, from ``start`` (None: the first guess and
-    the inverse kinematics) -> the states and their selection energies."""
+    the inverse kinematics; ``search_limbs``: the limb search first) -> the states and their
+    selection energies."""
     b = _basis()
     states, energies = [], []
     for lo in range(0, len(clouds), _CHUNK):
@@ -876,6 +878,8 @@ def _run(
             s = _levenberg_marquardt(s, data, [init] * opt.init_iterations, opt, b)
         else:
             s = start.take(torch.arange(lo, hi))
+        if search_limbs:
+            s = _limb_search(s, data, opt.limb_gate_m, opt.limb_fine_gate_m)
         s = _levenberg_marquardt(s, data, steps, opt, b)
         states.append(s)
         energies.append(_selection_energy(_pose(s, b), data, opt.selection_gate_m))
@@ -990,25 +994,7 @@ def _search_limbs(
 ) -> tuple[_State, torch.Tensor]:
     """The limb search and its refinement (:attr:`SolveOptions.limb_search`) from the
     solutions ``s`` with selection energies ``energy`` (B,); a frame keeps the better."""
-    searched = []
-    for lo in range(0, len(clouds), _CHUNK):
-        hi = min(lo + _CHUNK, len(clouds))
-        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi])
-        searched.append(
-            _limb_search(s.take(torch.arange(lo, hi)), data, opt.limb_gate_m, opt.limb_fine_gate_m)
-        )
-    k = max(opt.refine_iterations - 1, 1)
-    steps = [
-        _Weights(
-            True,
-            opt.refine_gate_start_m * (opt.gate_m / opt.refine_gate_start_m) ** (i / k),
-            opt.data_sigma_m,
-            opt.joint_prior_sigma_m,
-            opt.marker_prior_sigma_m,
-            opt.prior_gate_m,
-        )
-        for i in range(opt.refine_iterations)
-    ]
-    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=_State.cat(searched))
+    steps = _schedule(opt, gate_start_m=opt.refine_gate_start_m, iterations=opt.refine_iterations)
+    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=s, search_limbs=True)
     better = e_new < energy
     return s_new.where(better, s), torch.where(better, e_new, energy)
