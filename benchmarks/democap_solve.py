@@ -75,6 +75,10 @@ def main() -> int:
             SolveOptions(bend_starts_rad=(), limb_search=False),
         ),
         f"{k + 1} starts + bent, no limb search": (k + 1, bare),
+        f"{k + 1} starts + bent + limb search, best node only": (
+            k + 1,
+            SolveOptions(limb_keep=(1,)),
+        ),
         f"{k + 1} starts + bent + limb search (default)": (k + 1, SolveOptions()),
     }
     rows: dict[str, list[float]] = {c: [] for c in configs}
@@ -108,7 +112,7 @@ def main() -> int:
             "mpjpe_mm": round(err[name], 1),
         }
         print(
-            f"  {name:28s} {1000 * med:7.1f} ms a frame ({med / net_med:4.2f}x the network), "
+            f"  {name:50s} {1000 * med:7.1f} ms a frame ({med / net_med:4.2f}x the network), "
             f"MPJPE {err[name]:.1f} mm"
         )
     print(f"  network alone: MPJPE {err['network (ensemble)']:.1f} mm")

@@ -619,6 +619,9 @@ def democap_eval(args: argparse.Namespace) -> int:
         "motion_trained_on": seen,
         "rotations": predictor.rotations,
         "solve": predictor.solves,
+        # the ensemble a sparse cloud's solve starts from (None: never another)
+        "sparse_rotations": predictor.sparse_rotations if predictor.solves else None,
+        "sparse_points": predictor.sparse_points,
         "seed": args.seed,
         "corpus": None if corpus is None else str(corpus),
         "trained_corpus_clips": sorted(predictor.checkpoint.train_motions),

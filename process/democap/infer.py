@@ -25,6 +25,13 @@ cloud best gives the markers and joints, and the solved pose and height come wit
 the network's alone (the paper's output; live use at a high frame rate). The ``"pose"``
 baseline has no markers to fit: it is never solved.
 
+**Sparse clouds** (``sparse_rotations``, ``sparse_points``): with the solve and an ensemble,
+a cloud of fewer than :data:`SPARSE_POINTS` points (half the detections, a limb hidden, few
+cameras) is solved from :data:`SPARSE_ROTATIONS` turns: the turns the ensemble lacks go
+through the network for those clouds alone, and the solve starts from their median and from
+every turn. The network's estimates of a sparse cloud are far off, and more starts find the
+body more often (docs/democap.md); a dense cloud costs nothing more.
+
 **Batched turns** (``workers=1``, the default): the front/back views of every turn (and every
 cloud) go through the network as one batch, ``2·K·B`` views: one pass instead of K, which on a
 CPU costs about 15 % less than K passes of 2 views (fewer per-operation overheads for the
@@ -52,6 +59,7 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from mocaprig.errors import ValidationError
+from mocaprig.process.body import DEMOCAP_JOINT_INDEX, NUM_MARKERS, POSE_DIM
 from mocaprig.process.democap.checkpoint import DEFAULT_CHECKPOINT, Checkpoint, load_checkpoint
 from mocaprig.process.democap.dataset import prepare_cloud
 from mocaprig.process.democap.geometry import Normalisation, to_world_frame
@@ -61,11 +69,13 @@ from mocaprig.process.democap.model import (
     fuse_views_torch,
     view_keypoints,
 )
-from mocaprig.process.democap.solve import SolveOptions, solve_skeleton
+from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
     "DEFAULT_ROTATIONS",
+    "SPARSE_POINTS",
+    "SPARSE_ROTATIONS",
     "Combine",
     "DemocapPredictor",
     "Prediction",
@@ -79,6 +89,12 @@ FloatArray = npt.NDArray[np.float64]
 #: The default size of the rotation ensemble: three turns (0°, 60°, 120°) meet the accuracy
 #: targets on held-out data at three times the single shot's network cost (docs/democap.md).
 DEFAULT_ROTATIONS = 3
+#: A cloud with fewer points than this is *sparse* (a nominal 4-camera cloud of the 53
+#: markers has 110-145 after the merge; half the detections leave 60-90): its solve starts
+#: from :data:`SPARSE_ROTATIONS` turns (docs/democap.md, "Skeleton solve").
+SPARSE_POINTS = 100
+#: The ensemble a sparse cloud's solve starts from (the turns of the default's among them).
+SPARSE_ROTATIONS = 6
 #: How the rotation ensemble's estimates are combined, per coordinate.
 Combine = Literal["median", "mean"]
 
@@ -171,6 +187,11 @@ class DemocapPredictor:
         solve: fit the body model to the cloud from the network's estimates (module doc);
             ignored for a network without markers (the ``"pose"`` baseline).
         solve_options: the solve's weights and schedule (default :class:`SolveOptions`).
+        sparse_rotations: with the solve and an ensemble (``rotations`` > 1), a cloud of
+            fewer than ``sparse_points`` points is solved from an ensemble of this many
+            turns instead (the turns not already run go through the network for it alone):
+            where the cloud is sparse the network's estimates are far off and more starts
+            find the body more often; ``None`` (or no more than ``rotations``) for never.
         workers: how many network passes the K turns are split into, run at once: 1 (the
             default) puts the front/back views of all turns in one batch on the calling
             thread (the least work); ``W`` > 1 makes ``min(W, K)`` batches of consecutive
@@ -193,9 +214,25 @@ class DemocapPredictor:
         optimise: bool = True,
         solve: bool = True,
         solve_options: SolveOptions | None = None,
+        sparse_rotations: int | None = SPARSE_ROTATIONS,
+        sparse_points: int = SPARSE_POINTS,
         workers: int = 1,
     ) -> None:
         self._turns = ensemble_rotations(int(rotations))
+        # the sparse ensemble's turns that the ensemble does not run already
+        self._sparse_turns: list[FloatArray] = []
+        if sparse_rotations is not None and len(self._turns) > 1:
+            self._sparse_turns = [
+                r
+                for r in ensemble_rotations(int(sparse_rotations))
+                if not any(np.allclose(r, t, atol=1e-9) for t in self._turns)
+            ]
+        #: the cloud size below which the solve starts from the larger ensemble, and its size
+        #: (None: never)
+        self.sparse_points = int(sparse_points)
+        self.sparse_rotations = (
+            len(self._turns) + len(self._sparse_turns) if self._sparse_turns else None
+        )
         if combine not in ("median", "mean"):
             msg = f"combine must be 'median' or 'mean', got {combine!r}"
             raise ValidationError(msg)
@@ -289,19 +326,31 @@ class DemocapPredictor:
         self, points: list[FloatArray]
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """:meth:`hypotheses` of clouds already checked."""
+        mk, jt = self._turn_estimates(points, self._turns)
         t0 = time.perf_counter()
-        k, n, s = len(self._turns), len(points), self.size_px
+        markers, joints = self._combine(mk), self._combine(jt)
+        self.last_timings_s["decode_s"] += time.perf_counter() - t0
+        return markers, joints, mk, jt
+
+    def _combine(self, estimates: FloatArray) -> FloatArray:
+        """The turns' estimates (K, B, ...) combined per coordinate -> (B, ...)."""
+        reduce = np.median if self.combine == "median" else np.mean
+        return np.asarray(reduce(estimates, axis=0))
+
+    def _turn_estimates(
+        self, points: list[FloatArray], turns: list[FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        """Each turn's estimates of each cloud, world frame, m: markers (K, B, 53, 3) and
+        joints (K, B, 19, 3); the stages' times in :attr:`last_timings_s`."""
+        t0 = time.perf_counter()
+        k, n, s = len(turns), len(points), self.size_px
+        nm, nj = self.net.num_markers, self.net.num_joints
         if not points:
-            nm, nj = self.net.num_markers, self.net.num_joints
-            return (
-                np.zeros((0, nm, 3)),
-                np.zeros((0, nj, 3)),
-                np.zeros((k, 0, nm, 3)),
-                np.zeros((k, 0, nj, 3)),
-            )
+            self.last_timings_s = {"render_s": 0.0, "network_s": 0.0, "decode_s": 0.0}
+            return np.zeros((k, 0, nm, 3)), np.zeros((k, 0, nj, 3))
         fronts, backs = [], []
         boxes: list[list[tuple[Normalisation, FloatArray]]] = []
-        for rot in self._turns:
+        for rot in turns:
             box = []
             for p in points:
                 f, b, norm, centre = prepare_cloud(p, rot, size_px=self.size_px)
@@ -314,18 +363,16 @@ class DemocapPredictor:
         t1 = time.perf_counter()
         m, j = self._network(front_t, back_t)
         t2 = time.perf_counter()
-        # (K, B, 53 | 19, 3) estimates in the world frame, each turned back
-        mk = np.empty((k, n, self.net.num_markers, 3))
-        jt = np.empty((k, n, self.net.num_joints, 3))
-        for t, (rot, box) in enumerate(zip(self._turns, boxes, strict=True)):
+        # estimates in the world frame, each turned back
+        mk = np.empty((k, n, nm, 3))
+        jt = np.empty((k, n, nj, 3))
+        for t, (rot, box) in enumerate(zip(turns, boxes, strict=True)):
             for i, (norm, centre) in enumerate(box):
                 mk[t, i] = to_world_frame(norm.invert(m[t, i]) @ rot + centre)
                 jt[t, i] = to_world_frame(norm.invert(j[t, i]) @ rot + centre)
-        reduce = np.median if self.combine == "median" else np.mean
-        markers, joints = reduce(mk, axis=0), reduce(jt, axis=0)
         t3 = time.perf_counter()
         self.last_timings_s = {"render_s": t1 - t0, "network_s": t2 - t1, "decode_s": t3 - t2}
-        return markers, joints, mk, jt
+        return mk, jt
 
     def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
         """Several clouds: the network's estimates (:meth:`hypotheses`), then the skeleton
@@ -342,12 +389,37 @@ class DemocapPredictor:
         n, k = len(points), len(self._turns)
         if not self.solves:
             return [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(n)]
+        timings = dict(self.last_timings_s)
+        sparse = np.array([len(p) < self.sparse_points for p in points]) & bool(self._sparse_turns)
         t3 = time.perf_counter()
+        sol = _Solved.empty(n)
         # The starts: the combined estimate, then each turn's (a single turn is the one start).
-        hyp_m = markers[None] if k == 1 else np.concatenate([markers[None], mk])
-        hyp_j = joints[None] if k == 1 else np.concatenate([joints[None], jt])
-        sol = solve_skeleton(points, hyp_m, hyp_j, options=self.solve_options)
-        self.last_timings_s["solve_s"] = time.perf_counter() - t3
+        dense = np.flatnonzero(~sparse)
+        if len(dense):
+            hyp_m = (
+                markers[None, dense] if k == 1 else np.concatenate([markers[None], mk])[:, dense]
+            )
+            hyp_j = joints[None, dense] if k == 1 else np.concatenate([joints[None], jt])[:, dense]
+            sol.put(
+                dense,
+                solve_skeleton(
+                    [points[i] for i in dense], hyp_m, hyp_j, options=self.solve_options
+                ),
+            )
+        few = np.flatnonzero(sparse)
+        if len(few):
+            sub = [points[i] for i in few]
+            t_net = time.perf_counter()
+            xm, xj = self._turn_estimates(sub, self._sparse_turns)
+            for key, v in self.last_timings_s.items():
+                timings[key] += v
+            all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
+            t3 += time.perf_counter() - t_net  # the network's time is not the solve's
+            hyp_m = np.concatenate([self._combine(all_m)[None], all_m])
+            hyp_j = np.concatenate([self._combine(all_j)[None], all_j])
+            sol.put(few, solve_skeleton(sub, hyp_m, hyp_j, options=self.solve_options))
+        timings["solve_s"] = time.perf_counter() - t3
+        self.last_timings_s = timings
         return [
             Prediction(
                 markers_m=sol.markers_m[i],
@@ -357,3 +429,28 @@ class DemocapPredictor:
             )
             for i in range(n)
         ]
+
+
+@dataclass(frozen=True, slots=True)
+class _Solved:
+    """The solve's outputs of B clouds, filled in by groups of clouds."""
+
+    markers_m: FloatArray
+    joints_m: FloatArray
+    poses: FloatArray
+    height_m: FloatArray
+
+    @staticmethod
+    def empty(n: int) -> _Solved:
+        return _Solved(
+            np.full((n, NUM_MARKERS, 3), np.nan),
+            np.full((n, len(DEMOCAP_JOINT_INDEX), 3), np.nan),
+            np.full((n, POSE_DIM), np.nan),
+            np.full((n,), np.nan),
+        )
+
+    def put(self, rows: npt.NDArray[np.intp], sol: SolveResult) -> None:
+        self.markers_m[rows] = sol.markers_m
+        self.joints_m[rows] = sol.joints_m
+        self.poses[rows] = sol.poses
+        self.height_m[rows] = sol.height_m

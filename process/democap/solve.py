@@ -135,10 +135,12 @@ class SolveOptions:
             ``keep_starts`` starts of each frame that explain its cloud best go on (the others
             mostly end where one of them does; the cost of the rest is theirs alone).
         limb_search: after the solve, each limb of the winner in turn is set to every
-            configuration of a coarse grid of its angles (216 per arm, 180 per leg) and kept
-            where it explains the cloud best, scored at the gate ``limb_gate_m`` (wide: a
-            grid node is decimetres from the truth at the hand), then moved by ± half a grid
-            step per angle where that explains it better at ``limb_fine_gate_m``; then
+            configuration of a coarse grid of its angles (216 per arm, 180 per leg, 15 for
+            the head) and scored by how well it explains the cloud at the gate
+            ``limb_gate_m`` (wide: a grid node is decimetres from the truth at the hand);
+            the ``limb_keep[0]`` best are moved by ± half a grid step per angle and scored at
+            ``limb_fine_gate_m``, the ``limb_keep[1]`` best of those by ± a quarter step,
+            and so on, and the best of the last round is kept; then
             ``refine_iterations`` steps follow (the gate ``refine_gate_start_m`` ->
             ``gate_m``), and the result replaces the winner only where it explains the cloud
             better (at ``selection_gate_m``). A limb the network put on the wrong side of
@@ -168,6 +170,7 @@ class SolveOptions:
     limb_fine_gate_m: float = 0.10
     refine_iterations: int = 12
     refine_gate_start_m: float = 0.10
+    limb_keep: tuple[int, ...] = (8, 2)
 
     def __post_init__(self) -> None:
         for name in (
@@ -196,6 +199,9 @@ class SolveOptions:
                 "SolveOptions.init_iterations, .iterations, .prune_after and "
                 ".refine_iterations must be >= 0"
             )
+            raise ValidationError(msg)
+        if not self.limb_keep or min(self.limb_keep) < 1:
+            msg = f"SolveOptions.limb_keep must be one or more counts >= 1, got {self.limb_keep}"
             raise ValidationError(msg)
         if self.keep_starts < 1:
             msg = f"SolveOptions.keep_starts must be >= 1, got {self.keep_starts}"
@@ -703,26 +709,35 @@ def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
 
 #: The limb search's grids: per limb, the joint whose subtree moves, the DoF and the values
 #: (degrees) of each, every combination tried; the other DoF of the limb (forearm
-#: pronation, the ankle) keep their values.
-_LIMB_GRIDS: tuple[tuple[str, tuple[tuple[str, tuple[float, ...]], ...]], ...] = tuple(
-    (
-        f"{side.capitalize()}{'Arm' if arm else 'UpLeg'}",
+#: pronation, the ankle) keep their values. The head last (after the arms and legs).
+_LIMB_GRIDS: tuple[tuple[str, tuple[tuple[str, tuple[float, ...]], ...]], ...] = (
+    *(
         (
-            (f"{side}_shoulder_flexion", (-30.0, 0.0, 45.0, 90.0, 135.0, 180.0)),
-            (f"{side}_shoulder_abduction", (0.0, 45.0, 90.0, 135.0)),
-            (f"{side}_shoulder_internal_rotation", (-60.0, 0.0, 60.0)),
-            (f"{side}_elbow_flexion", (0.0, 60.0, 120.0)),
+            f"{side.capitalize()}{'Arm' if arm else 'UpLeg'}",
+            (
+                (f"{side}_shoulder_flexion", (-30.0, 0.0, 45.0, 90.0, 135.0, 180.0)),
+                (f"{side}_shoulder_abduction", (0.0, 45.0, 90.0, 135.0)),
+                (f"{side}_shoulder_internal_rotation", (-60.0, 0.0, 60.0)),
+                (f"{side}_elbow_flexion", (0.0, 60.0, 120.0)),
+            )
+            if arm
+            else (
+                (f"{side}_hip_flexion", (-20.0, 0.0, 40.0, 80.0, 120.0)),
+                (f"{side}_hip_abduction", (-15.0, 0.0, 30.0)),
+                (f"{side}_hip_internal_rotation", (-40.0, 0.0, 30.0)),
+                (f"{side}_knee_flexion", (0.0, 45.0, 90.0, 135.0)),
+            ),
         )
-        if arm
-        else (
-            (f"{side}_hip_flexion", (-20.0, 0.0, 40.0, 80.0, 120.0)),
-            (f"{side}_hip_abduction", (-15.0, 0.0, 30.0)),
-            (f"{side}_hip_internal_rotation", (-40.0, 0.0, 30.0)),
-            (f"{side}_knee_flexion", (0.0, 45.0, 90.0, 135.0)),
+        for arm in (True, False)
+        for side in ("left", "right")
+    ),
+    (
+        "Neck",
+        (
+            ("neck_flexion", (-30.0, 0.0, 30.0)),
+            ("neck_axial_rotation", (-60.0, -30.0, 0.0, 30.0, 60.0)),
         ),
-    )
-    for arm in (True, False)
-    for side in ("left", "right")
+    ),
 )
 #: Frames per batch of the limb search (each frame poses every candidate of a limb).
 _LIMB_CHUNK = 16
@@ -758,47 +773,51 @@ def _limbs() -> tuple[_Limb, ...]:
     return tuple(out)
 
 
-def _limb_search(s: _State, data: _Data, coarse_gate_m: float, fine_gate_m: float) -> _State:
-    """Each limb in turn set to the configuration of its grid (or kept as it is) whose markers
-    explain the cloud best at gate ``coarse_gate_m`` (the selection energy; the other markers
-    held), then to the best of that configuration moved by ± half a grid step per angle, at
-    ``fine_gate_m``."""
+def _limb_search(
+    s: _State, data: _Data, coarse_gate_m: float, fine_gate_m: float, keep: tuple[int, ...]
+) -> _State:
+    """Each limb in turn: its grid's configurations (the limb as it is among them) scored by
+    how well its markers explain the cloud at gate ``coarse_gate_m`` (the selection energy;
+    the other markers held); the ``keep[0]`` best each moved by ± half a grid step per angle
+    and scored at ``fine_gate_m``; the ``keep[1]`` best of those by ± a quarter step, and so
+    on; the best of the last round kept."""
+    b = _basis()
     angles = s.angles
     for limb in _limbs():
-        angles = _limb_pass(s, angles, data, limb, limb.grid, coarse_gate_m, relative=False)
-        angles = _limb_pass(s, angles, data, limb, limb.fine, fine_gate_m, relative=True)
+        # (P, 1 + C, 27): candidate 0 is the limb as it is
+        cand = angles[:, None].repeat(1, limb.grid.shape[0] + 1, 1)
+        cand[:, 1:, limb.dofs] = limb.grid
+        e = _limb_energies(s, cand, data, limb, coarse_gate_m)
+        offsets = torch.cat([torch.zeros(1, len(limb.dofs), dtype=torch.float64), limb.fine])
+        for level, k in enumerate(keep):
+            best = e.topk(min(k, cand.shape[1]), dim=1, largest=False).indices
+            top = torch.gather(cand, 1, best[..., None].expand(-1, -1, NUM_DOF))
+            moved = top[:, :, None].repeat(1, 1, offsets.shape[0], 1)
+            moved[..., limb.dofs] = torch.clamp(
+                moved[..., limb.dofs] + offsets * 0.5**level, b.lo[limb.dofs], b.hi[limb.dofs]
+            )
+            cand = moved.reshape(moved.shape[0], -1, NUM_DOF)
+            e = _limb_energies(s, cand, data, limb, fine_gate_m)
+        angles = cand[torch.arange(cand.shape[0]), e.argmin(dim=1)]
     return _State(s.root_r, s.root_t, angles, s.z)
 
 
-def _limb_pass(
-    s: _State,
-    angles: torch.Tensor,
-    data: _Data,
-    limb: _Limb,
-    grid: torch.Tensor,
-    c: float,
-    *,
-    relative: bool,
+def _limb_energies(
+    s: _State, cand: torch.Tensor, data: _Data, limb: _Limb, c: float
 ) -> torch.Tensor:
-    """``angles`` (P, 27) with the limb's DoF set to the best of ``grid`` (C, K; offsets from
-    the current values when ``relative``) or kept, scored at gate ``c``."""
+    """The selection energy at gate ``c`` (P, C) of candidate angles ``cand`` (P, C, 27) that
+    differ from each other only in the limb's DoF (its markers move, the others are those of
+    candidate 0)."""
     b = _basis()
-    out = angles.clone()
-    p_n = angles.shape[0]
-    n_c = grid.shape[0] + 1  # candidate 0: as it is
+    p_n, n_c = cand.shape[:2]
+    out = torch.empty(p_n, n_c, dtype=torch.float64)
     for lo in range(0, p_n, _LIMB_CHUNK):
         hi = min(lo + _LIMB_CHUNK, p_n)
         p = hi - lo
-        cand = angles[lo:hi, None].repeat(1, n_c, 1)
-        if relative:
-            moved = cand[:, 1:][..., limb.dofs] + grid
-            cand[:, 1:, limb.dofs] = torch.clamp(moved, b.lo[limb.dofs], b.hi[limb.dofs])
-        else:
-            cand[:, 1:, limb.dofs] = grid
         rep = _State(
             s.root_r[lo:hi].repeat_interleave(n_c, 0),
             s.root_t[lo:hi].repeat_interleave(n_c, 0),
-            cand.reshape(p * n_c, NUM_DOF),
+            cand[lo:hi].reshape(p * n_c, NUM_DOF),
             s.z[lo:hi].repeat_interleave(n_c, 0),
         )
         mk = _pose(rep, b).markers.reshape(p, n_c, NUM_MARKERS, 3)
@@ -810,9 +829,7 @@ def _limb_pass(
         d_c = torch.minimum(d.min(dim=2).values, held[:, None])
         e_m, _ = _gm(d.min(dim=3).values ** 2, c)
         e_c, _ = _gm(d_c**2, c)
-        e = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
-        best = e.argmin(dim=1)
-        out[lo:hi] = cand[torch.arange(p), best]
+        out[lo:hi] = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
     return out
 
 
@@ -879,7 +896,7 @@ def _run(
         else:
             s = start.take(torch.arange(lo, hi))
         if search_limbs:
-            s = _limb_search(s, data, opt.limb_gate_m, opt.limb_fine_gate_m)
+            s = _limb_search(s, data, opt.limb_gate_m, opt.limb_fine_gate_m, opt.limb_keep)
         s = _levenberg_marquardt(s, data, steps, opt, b)
         states.append(s)
         energies.append(_selection_energy(_pose(s, b), data, opt.selection_gate_m))

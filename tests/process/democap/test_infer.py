@@ -187,3 +187,22 @@ def test_hypotheses_are_the_ensemble_and_its_turns(tiny_config: DemocapConfig) -
     empty = pred.hypotheses([])
     assert empty[0].shape == (0, 53, 3)
     assert empty[3].shape == (3, 0, 19, 3)
+
+
+def test_a_sparse_cloud_is_solved_from_the_larger_ensemble(tiny_config: DemocapConfig) -> None:
+    ck = _checkpoint(tiny_config)
+    dense, sparse = _cloud(), _cloud()[::3]
+    cut = (len(dense) + len(sparse)) // 2
+    got = DemocapPredictor(ck, rotations=3, sparse_rotations=6, sparse_points=cut).predict_many(
+        [dense, sparse]
+    )
+    (three,) = DemocapPredictor(ck, rotations=3, sparse_rotations=None).predict_many([dense])
+    (six,) = DemocapPredictor(ck, rotations=6, sparse_rotations=None).predict_many([sparse])
+    np.testing.assert_allclose(got[0].joints_m, three.joints_m, atol=1e-9)
+    np.testing.assert_allclose(got[1].joints_m, six.joints_m, atol=1e-6)
+    (from_three,) = DemocapPredictor(ck, rotations=3, sparse_rotations=None).predict_many([sparse])
+    assert not np.allclose(got[1].joints_m, from_three.joints_m, atol=1e-6)
+    # the single shot stays one network pass, sparse or not
+    one = DemocapPredictor(ck, rotations=1, sparse_points=cut).predict_many([sparse])
+    alone = DemocapPredictor(ck, rotations=1, sparse_rotations=None).predict_many([sparse])
+    np.testing.assert_allclose(one[0].joints_m, alone[0].joints_m, atol=1e-12)

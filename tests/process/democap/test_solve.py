@@ -14,6 +14,7 @@ from mocaprig.process.body import (
     DOF_LIMITS_RAD,
     DOF_NAMES,
     LENGTH_FIELDS,
+    MARKER_NAMES,
     RADIUS_FIELDS,
     BodyShape,
     MarkerSet,
@@ -221,17 +222,23 @@ def test_the_limb_search_frees_an_arm_stuck_on_the_wrong_side() -> None:
 
 def test_the_limb_grids_cover_each_limb_within_its_limits() -> None:
     limbs = S._limbs()
-    assert len(limbs) == 4
+    assert len(limbs) == 5  # four limbs, then the head
     moving = np.zeros(len(limbs[0].markers), int)
     for limb in limbs:
         lo, hi = DOF_LIMITS_RAD[limb.dofs.numpy()].T
         g = limb.grid.numpy()
         assert np.all((g >= lo) & (g <= hi))
-        assert len(np.unique(g, axis=0)) == len(g) >= 150
+        assert len(np.unique(g, axis=0)) == len(g) >= (150 if limb is not limbs[-1] else 15)
         moving += limb.markers.numpy()
     assert moving.max() == 1  # no marker moves with two limbs
-    # the trunk's markers (pelvis, spine, head, clavicles) move with none
-    assert 10 <= int((moving == 0).sum()) < len(moving) // 2
+    head = {MARKER_NAMES[i] for i in np.flatnonzero(limbs[-1].markers.numpy())}
+    assert {"LFHD", "RFHD", "LBHD", "RBHD"} <= head
+    # the trunk's markers (pelvis, spine, clavicles) move with none
+    assert 10 <= int((moving == 0).sum()) < len(moving) // 3
+    with pytest.raises(ValidationError, match="limb_keep"):
+        S.SolveOptions(limb_keep=())
+    with pytest.raises(ValidationError, match="limb_keep"):
+        S.SolveOptions(limb_keep=(4, 0))
 
 
 def test_bad_inputs_are_refused() -> None:
