@@ -750,8 +750,14 @@ class LiveClient:
         else:
             head = bytes([0x81, 0x80 | 127]) + n.to_bytes(8, "big")
         masked = payload ^ np.resize(mask, n)
-        assert self._sock is not None
-        self._sock.sendall(head + mask.tobytes() + masked.tobytes())
+        if self._sock is None:
+            return
+        try:
+            self._sock.sendall(head + mask.tobytes() + masked.tobytes())
+        except OSError:
+            # the server went away (a retried subscription runs on a timer thread, after the
+            # connection may have ended): what the client received stays readable
+            _log.debug("live client: could not send %d bytes, connection ended", n, exc_info=True)
 
     def _read(self) -> None:
         assert self._sock is not None

@@ -4,6 +4,7 @@ no recorder drop whatever the client does."""
 from __future__ import annotations
 
 import json
+import socket
 import sys
 import threading
 import time
@@ -240,3 +241,15 @@ def test_a_scene_is_offered_every_message_and_a_failing_one_is_dropped(tmp_path:
             assert len(scene.offered) == 1
         else:
             assert {"/d415/c0/ir", "/d415/c0/depth", "/davis/x/events"} <= set(scene.offered)
+
+
+def test_a_client_whose_server_went_away_sends_nothing_and_raises_nothing() -> None:
+    client = LiveClient("127.0.0.1", 1)
+    mine, theirs = socket.socketpair()
+    theirs.close()
+    client._sock = mine  # as after connect(), the server gone since
+    try:
+        for _ in range(3):  # the first send may still be buffered; a later one breaks the pipe
+            client._send_text(json.dumps({"op": "subscribe", "subscriptions": []}))
+    finally:
+        mine.close()
