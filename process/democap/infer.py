@@ -374,6 +374,23 @@ class DemocapPredictor:
         self.last_timings_s = {"render_s": t1 - t0, "network_s": t2 - t1, "decode_s": t3 - t2}
         return mk, jt
 
+    def _solve(
+        self,
+        points: list[FloatArray],
+        rows: npt.NDArray[np.intp],
+        markers: FloatArray,
+        joints: FloatArray,
+        mk: FloatArray,
+        jt: FloatArray,
+    ) -> SolveResult:
+        """The solve of the clouds ``rows`` of ``points`` from their combined estimate and each
+        turn's (a single turn is the one start)."""
+        hyp_m = markers[None] if len(mk) == 1 else np.concatenate([markers[None], mk])
+        hyp_j = joints[None] if len(jt) == 1 else np.concatenate([joints[None], jt])
+        return solve_skeleton(
+            [points[i] for i in rows], hyp_m[:, rows], hyp_j[:, rows], options=self.solve_options
+        )
+
     def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
         """Several clouds: the network's estimates (:meth:`hypotheses`), then the skeleton
         solve from them when :attr:`solves`.
@@ -386,38 +403,30 @@ class DemocapPredictor:
         if not points:
             return []
         markers, joints, mk, jt = self._hypotheses(points)
-        n, k = len(points), len(self._turns)
+        n = len(points)
         if not self.solves:
             return [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(n)]
         timings = dict(self.last_timings_s)
         sparse = np.array([len(p) < self.sparse_points for p in points]) & bool(self._sparse_turns)
         t3 = time.perf_counter()
         sol = _Solved.empty(n)
-        # The starts: the combined estimate, then each turn's (a single turn is the one start).
         dense = np.flatnonzero(~sparse)
         if len(dense):
-            hyp_m = (
-                markers[None, dense] if k == 1 else np.concatenate([markers[None], mk])[:, dense]
-            )
-            hyp_j = joints[None, dense] if k == 1 else np.concatenate([joints[None], jt])[:, dense]
-            sol.put(
-                dense,
-                solve_skeleton(
-                    [points[i] for i in dense], hyp_m, hyp_j, options=self.solve_options
-                ),
-            )
+            sol.put(dense, self._solve(points, dense, markers, joints, mk, jt))
         few = np.flatnonzero(sparse)
         if len(few):
-            sub = [points[i] for i in few]
             t_net = time.perf_counter()
-            xm, xj = self._turn_estimates(sub, self._sparse_turns)
+            xm, xj = self._turn_estimates([points[i] for i in few], self._sparse_turns)
             for key, v in self.last_timings_s.items():
                 timings[key] += v
-            all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
             t3 += time.perf_counter() - t_net  # the network's time is not the solve's
-            hyp_m = np.concatenate([self._combine(all_m)[None], all_m])
-            hyp_j = np.concatenate([self._combine(all_j)[None], all_j])
-            sol.put(few, solve_skeleton(sub, hyp_m, hyp_j, options=self.solve_options))
+            all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
+            every = np.arange(len(few))
+            sub = [points[i] for i in few]
+            sol.put(
+                few,
+                self._solve(sub, every, self._combine(all_m), self._combine(all_j), all_m, all_j),
+            )
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
         return [

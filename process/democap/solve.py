@@ -747,7 +747,9 @@ _LIMB_CHUNK = 16
 class _Limb:
     dofs: torch.Tensor  # (K,) the DoF the grid sets
     grid: torch.Tensor  # (C, K) rad, within the limits
-    fine: torch.Tensor  # (F, K) rad: ± half the grid's step per DoF, every combination
+    fine: (
+        torch.Tensor
+    )  # (1 + F, K) rad: none, then ± half the grid's step per DoF, every combination
     markers: torch.Tensor  # (53,) bool: the markers that move with the limb
 
 
@@ -761,7 +763,8 @@ def _limbs() -> tuple[_Limb, ...]:
         grid = np.clip(grid, DOF_LIMITS_RAD[dofs, 0], DOF_LIMITS_RAD[dofs, 1])
         half = [np.deg2rad(np.diff(v).min() / 2.0) for _, v in table]
         fine = np.array(list(itertools.product(*((-h, 0.0, h) for h in half))))
-        fine = fine[np.abs(fine).sum(axis=1) > 0]  # "as it is" is candidate 0 already
+        # "as it is" first, then every move
+        fine = np.concatenate([np.zeros((1, len(dofs))), fine[np.abs(fine).sum(axis=1) > 0]])
         out.append(
             _Limb(
                 dofs=torch.tensor(dofs),
@@ -788,13 +791,12 @@ def _limb_search(
         cand = angles[:, None].repeat(1, limb.grid.shape[0] + 1, 1)
         cand[:, 1:, limb.dofs] = limb.grid
         e = _limb_energies(s, cand, data, limb, coarse_gate_m)
-        offsets = torch.cat([torch.zeros(1, len(limb.dofs), dtype=torch.float64), limb.fine])
         for level, k in enumerate(keep):
             best = e.topk(min(k, cand.shape[1]), dim=1, largest=False).indices
             top = torch.gather(cand, 1, best[..., None].expand(-1, -1, NUM_DOF))
-            moved = top[:, :, None].repeat(1, 1, offsets.shape[0], 1)
+            moved = top[:, :, None].repeat(1, 1, limb.fine.shape[0], 1)
             moved[..., limb.dofs] = torch.clamp(
-                moved[..., limb.dofs] + offsets * 0.5**level, b.lo[limb.dofs], b.hi[limb.dofs]
+                moved[..., limb.dofs] + limb.fine * 0.5**level, b.lo[limb.dofs], b.hi[limb.dofs]
             )
             cand = moved.reshape(moved.shape[0], -1, NUM_DOF)
             e = _limb_energies(s, cand, data, limb, fine_gate_m)
