@@ -80,6 +80,8 @@ __all__ = [
     "rotvec_to_matrix",
     "rotvec_to_matrix_torch",
     "skew_torch",
+    "subtree_joints",
+    "subtree_kinematics_torch",
     "t_pose",
     "within_limits",
 ]
@@ -351,6 +353,62 @@ def forward_kinematics_torch(
         all_pos = torch.cat([all_pos, new_pos], dim=-2)
     order = torch.as_tensor(_TO_JOINT_ORDER, device=pose.device)
     return all_pos.index_select(-2, order), all_rots.index_select(-3, order)
+
+
+def subtree_joints(top: int) -> tuple[int, ...]:
+    """Joint ``top`` and every joint below it, in joint order (parents first)."""
+    under = np.zeros(len(JOINTS), dtype=bool)
+    under[top] = True
+    for j in range(top + 1, len(JOINTS)):  # parents come before their children
+        under[j] = under[PARENTS[j]]
+    return tuple(int(j) for j in np.flatnonzero(under))
+
+
+def subtree_kinematics_torch(
+    angles: torch.Tensor,
+    offsets: torch.Tensor,
+    parent_pos: torch.Tensor,
+    parent_rot: torch.Tensor,
+    *,
+    top: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The world pose of joint ``top`` (not the root) and the joints below it
+    (:func:`subtree_joints` order) when only their angles change: what
+    :func:`forward_kinematics_torch` gives for those joints, without the rest of the chain.
+
+    Args:
+        angles: (..., 27) rad; only the DoF of the subtree's joints are read.
+        offsets: (..., 26, 3) rest offsets (m), broadcast against ``angles``.
+        parent_pos, parent_rot: (..., 3), (..., 3, 3) world pose of ``top``'s parent.
+
+    Returns:
+        Positions (..., S, 3) and rotations (..., S, 3, 3), world frame.
+
+    Raises:
+        ValidationError: ``top`` is the root or not a joint.
+    """
+    if not 0 < top < len(JOINTS):
+        msg = f"subtree_kinematics_torch: top must be a joint below the root, got {top!r}"
+        raise ValidationError(msg)
+    joints = subtree_joints(top)
+    row = {j: k for k, j in enumerate(joints)}
+    emap = torch.as_tensor(EULER_MAP[:, list(joints)], dtype=angles.dtype, device=angles.device)
+    local = _euler_xyz_torch(torch.einsum("...d,dsk->...sk", angles, emap))
+    pos: list[torch.Tensor] = []
+    rot: list[torch.Tensor] = []
+    for k, j in enumerate(joints):
+        if j == top:
+            pp, pr = parent_pos, parent_rot
+        else:
+            pp, pr = pos[row[PARENTS[j]]], rot[row[PARENTS[j]]]
+        pos.append(pp + (pr @ offsets[..., j, :, None])[..., 0])
+        rot.append(pr @ local[..., k, :, :])
+    # the top joint's position does not depend on its own angles: broadcast it to the rest
+    batch = np.broadcast_shapes(*(x.shape[:-1] for x in pos), *(r.shape[:-2] for r in rot))
+    return (
+        torch.stack([x.expand(*batch, 3) for x in pos], dim=-2),
+        torch.stack([r.expand(*batch, 3, 3) for r in rot], dim=-3),
+    )
 
 
 # --- limits and canonical poses -------------------------------------------------------------

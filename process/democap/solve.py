@@ -75,6 +75,8 @@ from mocaprig.process.body.kinematics import (
     forward_kinematics_torch,
     neutral_pose,
     rotvec_to_matrix_torch,
+    subtree_joints,
+    subtree_kinematics_torch,
 )
 from mocaprig.process.body.markers import NUM_MARKERS, MarkerSet
 from mocaprig.process.body.shape import (
@@ -751,6 +753,8 @@ class _Limb:
         torch.Tensor
     )  # (1 + F, K) rad: none, then ± half the grid's step per DoF, every combination
     markers: torch.Tensor  # (53,) bool: the markers that move with the limb
+    top: int  # the joint whose subtree moves
+    marker_rows: torch.Tensor  # (m,): per moving marker, its joint's row in subtree_joints(top)
 
 
 @functools.cache
@@ -765,12 +769,16 @@ def _limbs() -> tuple[_Limb, ...]:
         fine = np.array(list(itertools.product(*((-h, 0.0, h) for h in half))))
         # "as it is" first, then every move
         fine = np.concatenate([np.zeros((1, len(dofs))), fine[np.abs(fine).sum(axis=1) > 0]])
+        moving = _subtree(top)[marker_joint]
+        row = {j: k for k, j in enumerate(subtree_joints(JOINTS.index(top)))}
         out.append(
             _Limb(
                 dofs=torch.tensor(dofs),
                 grid=torch.from_numpy(grid),
                 fine=torch.from_numpy(fine),
-                markers=torch.from_numpy(_subtree(top)[marker_joint]),
+                markers=torch.from_numpy(moving),
+                top=JOINTS.index(top),
+                marker_rows=torch.tensor([row[int(j)] for j in marker_joint[moving]]),
             )
         )
     return tuple(out)
@@ -813,21 +821,28 @@ def _limb_energies(
     b = _basis()
     p_n, n_c = cand.shape[:2]
     out = torch.empty(p_n, n_c, dtype=torch.float64)
+    parent = PARENTS[limb.top]
     for lo in range(0, p_n, _LIMB_CHUNK):
         hi = min(lo + _LIMB_CHUNK, p_n)
         p = hi - lo
-        rep = _State(
-            s.root_r[lo:hi].repeat_interleave(n_c, 0),
-            s.root_t[lo:hi].repeat_interleave(n_c, 0),
-            cand[lo:hi].reshape(p * n_c, NUM_DOF),
-            s.z[lo:hi].repeat_interleave(n_c, 0),
+        # Only the limb's subtree differs between candidates: the rest is posed once.
+        base = _State(s.root_r[lo:hi], s.root_t[lo:hi], cand[lo:hi, 0], s.z[lo:hi])
+        q0 = _pose(base, b)
+        off = base.z[:, 0:1, None] * torch.tensordot(q0.rel, b.d_off, 1)
+        pos, rot = subtree_kinematics_torch(
+            cand[lo:hi],
+            off[:, None],
+            q0.pos[:, None, parent],
+            q0.rot[:, None, parent],
+            top=limb.top,
         )
-        mk = _pose(rep, b).markers.reshape(p, n_c, NUM_MARKERS, 3)
+        r = limb.marker_rows
+        m_off = q0.m_off[:, None, limb.markers]  # (p, 1, m, 3)
+        moving = pos[:, :, r] + (rot[:, :, r] @ m_off[..., None])[..., 0]  # (p, C, m, 3)
         cloud, mask = data.cloud[lo:hi], data.mask[lo:hi]
-        moving = mk[:, :, limb.markers]  # (p, C, m, 3)
         d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
         # each point's nearest marker: the held markers' (the same for every candidate)
-        held = torch.cdist(mk[:, 0, ~limb.markers], cloud).min(dim=1).values  # (p, N)
+        held = torch.cdist(q0.markers[:, ~limb.markers], cloud).min(dim=1).values  # (p, N)
         d_c = torch.minimum(d.min(dim=2).values, held[:, None])
         e_m, _ = _gm(d.min(dim=3).values ** 2, c)
         e_c, _ = _gm(d_c**2, c)

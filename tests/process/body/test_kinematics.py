@@ -23,12 +23,15 @@ from mocaprig.process.body.kinematics import (
     neutral_pose,
     rotvec_to_matrix,
     rotvec_to_matrix_torch,
+    subtree_joints,
+    subtree_kinematics_torch,
     t_pose,
     within_limits,
 )
 from mocaprig.process.body.shape import BodyShape, rest_offsets
 from mocaprig.process.body.skeleton import (
     DEMOCAP_JOINT_INDEX,
+    DOF_JOINT,
     DOF_LIMITS_RAD,
     DOF_NAMES,
     JOINT_INDEX,
@@ -223,6 +226,38 @@ def test_torch_fk_gradients_pass_gradcheck() -> None:
 def test_torch_fk_rejects_wrong_offsets_shape() -> None:
     with pytest.raises(ValidationError, match="offsets must have shape"):
         forward_kinematics_torch(torch.zeros(POSE_DIM), torch.zeros(25, 3))
+
+
+@pytest.mark.parametrize("top", ["LeftArm", "RightUpLeg", "Neck", "Spine1"])
+def test_subtree_kinematics_matches_the_whole_chain_below_its_top(top: str) -> None:
+    rng = np.random.default_rng(11)
+    base = random_poses(rng, 1)[0]
+    joints = subtree_joints(J[top])
+    assert joints[0] == J[top]
+    assert all(PARENTS[j] in joints for j in joints[1:])
+    # candidates: the base pose with the subtree's own angles from random poses
+    own = ROOT_DIM + np.flatnonzero(np.isin(DOF_JOINT, joints))
+    cand = np.repeat(base[None], 5, axis=0)
+    cand[:, own] = random_poses(rng, 5)[:, own]
+    off = torch.tensor(rest_offsets(SHAPE))
+    pos0, rot0 = forward_kinematics_torch(torch.tensor(base), off)
+    want_pos, want_rot = forward_kinematics_torch(torch.tensor(cand), off)
+    pos, rot = subtree_kinematics_torch(
+        torch.tensor(cand[:, ROOT_DIM:]),
+        off,
+        pos0[PARENTS[J[top]]],
+        rot0[PARENTS[J[top]]],
+        top=J[top],
+    )
+    np.testing.assert_allclose(pos.numpy(), want_pos[:, list(joints)].numpy(), atol=1e-12)
+    np.testing.assert_allclose(rot.numpy(), want_rot[:, list(joints)].numpy(), atol=1e-12)
+
+
+def test_subtree_kinematics_rejects_the_root() -> None:
+    with pytest.raises(ValidationError, match="below the root"):
+        subtree_kinematics_torch(
+            torch.zeros(27), torch.zeros(26, 3), torch.zeros(3), torch.eye(3), top=0
+        )
 
 
 # --- rotations ------------------------------------------------------------------------------

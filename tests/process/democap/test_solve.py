@@ -241,6 +241,41 @@ def test_the_limb_grids_cover_each_limb_within_its_limits() -> None:
         S.SolveOptions(limb_keep=(4, 0))
 
 
+def test_limb_candidates_score_as_the_fully_posed_body_does() -> None:
+    """The limb search poses only the limb's subtree per candidate; its scores equal the
+    selection energy of each candidate posed whole (minus the held markers' constant part)."""
+    _, mk, jt = _take(3)
+    rng = np.random.default_rng(4)
+    clouds = [_cloud(m, rng) for m in mk[:3]]
+    b = S._basis()
+    s = S._initial_state(mk[:3], jt[:3], b)
+    data = S._data(clouds, mk[:3], jt[:3])
+    for limb in S._limbs():
+        # the held DoF differ from the state's (an earlier limb has moved since)
+        moved = torch.clamp(
+            s.angles + torch.from_numpy(rng.normal(0, 0.2, s.angles.shape)), b.lo, b.hi
+        )
+        cand = moved[:, None].repeat(1, 7, 1)
+        cand[:, 1:, limb.dofs] = limb.grid[rng.choice(len(limb.grid), 6, replace=False)]
+        got = S._limb_energies(s, cand, data, limb, 0.1)
+        whole = (
+            torch.stack(
+                [
+                    S._selection_energy(
+                        S._pose(S._State(s.root_r, s.root_t, cand[:, k], s.z), b), data, 0.1
+                    )
+                    for k in range(7)
+                ],
+                dim=1,
+            )
+            * 0.1**2
+        )
+        held = S._pose(S._State(s.root_r, s.root_t, cand[:, 0], s.z), b).markers[:, ~limb.markers]
+        d_h = torch.cdist(held, data.cloud).min(dim=2).values
+        const = S._gm(d_h**2, 0.1)[0].sum(1)
+        torch.testing.assert_close(got, whole - const[:, None], rtol=1e-9, atol=1e-9)
+
+
 def test_bad_inputs_are_refused() -> None:
     _, mk, jt = _take(3)
     cloud = mk[0]
