@@ -349,7 +349,7 @@ def evaluate(
     takes = pool if pool is not None else held_out_pool(seed, motion=motion, subjects=subjects)
     rng = np.random.default_rng([seed, 7, num_cameras])
     size = predictor.size_px
-    clouds, tm, tj, actions, seen, inside = [], [], [], [], [], []
+    clouds, tm, tj, actions, seen, inside, views = [], [], [], [], [], [], []
     requested = 0
     for take in takes:
         idx = np.linspace(0, take.num_frames - 1, min(frames_per_take, take.num_frames))
@@ -373,6 +373,7 @@ def evaluate(
             d = np.linalg.norm(s.raw_m[:, None, :] - s.markers_m[None], axis=-1)
             seen.append(float(np.mean(d.min(axis=0) < 0.03)))
             inside.append(bool(in_frustum(s.joints_m[:1], list(s.cameras)).all()))
+            views.append(list(s.cameras))
     if not clouds:
         msg = f"none of the {requested} frames gave a cloud of 2 points or more"
         raise ProcessingError(msg)
@@ -382,7 +383,8 @@ def evaluate(
         )
     pm, pj = [], []
     for k in range(0, len(clouds), batch):
-        for p in predictor.predict_many(clouds[k : k + batch]):
+        # the rig is calibrated: the solve knows where the cameras look
+        for p in predictor.predict_many(clouds[k : k + batch], views=views[k : k + batch]):
             pm.append(p.markers_m)
             pj.append(p.joints_m)
     pred_m, pred_j = np.array(pm) * 1000.0, np.array(pj) * 1000.0

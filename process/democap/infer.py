@@ -69,6 +69,7 @@ from mocaprig.process.democap.model import (
     fuse_views_torch,
     view_keypoints,
 )
+from mocaprig.process.democap.simdata import Camera
 from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
 
@@ -382,23 +383,42 @@ class DemocapPredictor:
         joints: FloatArray,
         mk: FloatArray,
         jt: FloatArray,
+        views: Sequence[Sequence[Camera]] | None,
     ) -> SolveResult:
-        """The solve of the clouds ``rows`` of ``points`` from their combined estimate and each
-        turn's (a single turn is the one start)."""
+        """The solve of the clouds ``rows`` of ``points`` (``views``: their cameras, aligned
+        with ``points``) from their combined estimate and each turn's (a single turn is the
+        one start)."""
         hyp_m = markers[None] if len(mk) == 1 else np.concatenate([markers[None], mk])
         hyp_j = joints[None] if len(jt) == 1 else np.concatenate([joints[None], jt])
         return solve_skeleton(
-            [points[i] for i in rows], hyp_m[:, rows], hyp_j[:, rows], options=self.solve_options
+            [points[i] for i in rows],
+            hyp_m[:, rows],
+            hyp_j[:, rows],
+            options=self.solve_options,
+            views=None if views is None else [views[int(i)] for i in rows],
         )
 
-    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
+    def predict_many(
+        self,
+        clouds: Sequence[npt.ArrayLike],
+        *,
+        views: Sequence[Sequence[Camera]] | None = None,
+    ) -> list[Prediction]:
         """Several clouds: the network's estimates (:meth:`hypotheses`), then the skeleton
-        solve from them when :attr:`solves`.
+        solve from them when :attr:`solves`. ``views``: per cloud, the calibrated cameras
+        that made it; the solve then does not charge a body part for being absent where no
+        camera looks (:func:`solve.solve_skeleton`); the network does not use them.
 
         Raises:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
-                than 2 points.
+                than 2 points; ``views`` not one camera list per cloud.
         """
+        if views is not None and len(views) != len(clouds):
+            msg = (
+                f"views has {len(views)} entries for {len(clouds)} clouds; give one camera "
+                "list per cloud"
+            )
+            raise ValidationError(msg)
         points = _checked(clouds)
         if not points:
             return []
@@ -412,7 +432,7 @@ class DemocapPredictor:
         sol = _Solved.empty(n)
         dense = np.flatnonzero(~sparse)
         if len(dense):
-            sol.put(dense, self._solve(points, dense, markers, joints, mk, jt))
+            sol.put(dense, self._solve(points, dense, markers, joints, mk, jt, views))
         few = np.flatnonzero(sparse)
         if len(few):
             t_net = time.perf_counter()
@@ -423,10 +443,9 @@ class DemocapPredictor:
             all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
             every = np.arange(len(few))
             sub = [points[i] for i in few]
-            sol.put(
-                few,
-                self._solve(sub, every, self._combine(all_m), self._combine(all_j), all_m, all_j),
-            )
+            sub_views = None if views is None else [views[int(i)] for i in few]
+            combined_m, combined_j = self._combine(all_m), self._combine(all_j)
+            sol.put(few, self._solve(sub, every, combined_m, combined_j, all_m, all_j, sub_views))
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
         return [

@@ -96,6 +96,7 @@ from mocaprig.process.body.skeleton import (
     PARENTS,
     ROOT_DIM,
 )
+from mocaprig.process.democap.simdata import IMAGE_H, IMAGE_MARGIN_PX, IMAGE_W, RANGE_M, Camera
 from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = ["REFERENCE_HEIGHT_M", "SolveOptions", "SolveResult", "solve_skeleton"]
@@ -493,6 +494,60 @@ class _Data:
     mask: torch.Tensor  # (P, N) 1 for a real point
     tm: torch.Tensor  # (P, 53, 3) the network's markers
     tj: torch.Tensor  # (P, 19, 3) and joints
+    views: _Views | None = None  # the rig's cameras per problem (None: everything is seen)
+
+    def seen(self, pts: torch.Tensor) -> torch.Tensor:
+        """1.0 where a point (P, ..., 3) lies in some camera's view of its problem, else 0.0
+        (P, ...); all ones without views."""
+        if self.views is None:
+            return torch.ones(pts.shape[:-1], dtype=pts.dtype)
+        return self.views.seen(pts)
+
+    def rows(self, lo: int, hi: int) -> _Data:
+        """Problems ``lo:hi``."""
+        return _Data(
+            self.cloud[lo:hi],
+            self.mask[lo:hi],
+            self.tm[lo:hi],
+            self.tj[lo:hi],
+            None if self.views is None else self.views.rows(lo, hi),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class _Views:
+    """Each problem's cameras (padded ones have focal 0): what :func:`simdata.in_frustum`
+    tests, in torch."""
+
+    centre: torch.Tensor  # (P, K, 3) world, m
+    r_cw: torch.Tensor  # (P, K, 3, 3) world -> camera
+    focal: torch.Tensor  # (P, K) px; 0 for a padded camera
+
+    @staticmethod
+    def of(views: Sequence[Sequence[Camera]]) -> _Views:
+        p_n, k = len(views), max((len(v) for v in views), default=0)
+        c, r, f = np.zeros((p_n, k, 3)), np.tile(np.eye(3), (p_n, k, 1, 1)), np.zeros((p_n, k))
+        for i, v in enumerate(views):
+            for j, cam in enumerate(v):
+                c[i, j], r[i, j], f[i, j] = cam.centre_m, cam.r_cw, cam.focal_px
+        return _Views(torch.from_numpy(c), torch.from_numpy(r), torch.from_numpy(f))
+
+    def rows(self, lo: int, hi: int) -> _Views:
+        return _Views(self.centre[lo:hi], self.r_cw[lo:hi], self.focal[lo:hi])
+
+    def seen(self, pts: torch.Tensor) -> torch.Tensor:
+        shape = pts.shape
+        rel = pts.reshape(shape[0], -1, 1, 3) - self.centre[:, None]  # (P, M, K, 3)
+        pc = (self.r_cw[:, None] @ rel[..., None])[..., 0]
+        z = pc[..., 2]
+        zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+        f = self.focal[:, None]
+        u = f * pc[..., 0] / zs + IMAGE_W / 2
+        v = f * pc[..., 1] / zs + IMAGE_H / 2
+        mg = IMAGE_MARGIN_PX
+        ok = (f > 0) & (z > RANGE_M[0]) & ((rel**2).sum(-1) < RANGE_M[1] ** 2)
+        ok = ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
+        return ok.any(-1).to(pts.dtype).reshape(shape[:-1])
 
 
 def _nearest(
@@ -527,6 +582,9 @@ def _energy_terms(
     if w.data:
         d_m, nn_m, d_c, nn_c = _nearest(q, data)
         e_m, w_m = _gm(d_m * d_m, w.gate_m)
+        # a model marker no camera can see is not missing from the cloud: no cost
+        seen = data.seen(q.markers)
+        e_m, w_m = e_m * seen, w_m * seen
         e_c, w_c = _gm(d_c * d_c, w.gate_m)
         w_c = w_c * data.mask
         e = e + (e_m.sum(1) + (e_c * data.mask).sum(1)) / w.sigma_d**2
@@ -706,7 +764,7 @@ def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
     d_m, _, d_c, _ = _nearest(q, data)
     e_m, _ = _gm(d_m**2, c)
     e_c, _ = _gm(d_c**2, c)
-    return (e_m.sum(1) + (e_c * data.mask).sum(1)) / (c * c)
+    return ((e_m * data.seen(q.markers)).sum(1) + (e_c * data.mask).sum(1)) / (c * c)
 
 
 #: The limb search's grids: per limb, the joint whose subtree moves, the DoF and the values
@@ -839,18 +897,24 @@ def _limb_energies(
         r = limb.marker_rows
         m_off = q0.m_off[:, None, limb.markers]  # (p, 1, m, 3)
         moving = pos[:, :, r] + (rot[:, :, r] @ m_off[..., None])[..., 0]  # (p, C, m, 3)
-        cloud, mask = data.cloud[lo:hi], data.mask[lo:hi]
+        part = data.rows(lo, hi)
+        cloud, mask = part.cloud, part.mask
         d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
         # each point's nearest marker: the held markers' (the same for every candidate)
         held = torch.cdist(q0.markers[:, ~limb.markers], cloud).min(dim=1).values  # (p, N)
         d_c = torch.minimum(d.min(dim=2).values, held[:, None])
         e_m, _ = _gm(d.min(dim=3).values ** 2, c)
         e_c, _ = _gm(d_c**2, c)
-        out[lo:hi] = e_m.sum(2) + (e_c * mask[:, None]).sum(2)
+        out[lo:hi] = (e_m * part.seen(moving)).sum(2) + (e_c * mask[:, None]).sum(2)
     return out
 
 
-def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data:
+def _data(
+    clouds: Sequence[FloatArray],
+    tm: FloatArray,
+    tj: FloatArray,
+    views: Sequence[Sequence[Camera]] | None = None,
+) -> _Data:
     """Problems' tensors; clouds padded with far points that no term sees."""
     p_n = len(clouds)
     n = max(len(c) for c in clouds)
@@ -864,6 +928,7 @@ def _data(clouds: Sequence[FloatArray], tm: FloatArray, tj: FloatArray) -> _Data
         mask=torch.from_numpy(mask),
         tm=torch.from_numpy(np.ascontiguousarray(tm)),
         tj=torch.from_numpy(np.ascontiguousarray(tj)),
+        views=None if views is None else _Views.of(views),
     )
 
 
@@ -897,6 +962,7 @@ def _run(
     *,
     start: _State | None = None,
     search_limbs: bool = False,
+    views: Sequence[Sequence[Camera]] | None = None,
 ) -> tuple[_State, torch.Tensor]:
     """``steps`` of LM on each problem, in chunks, from ``start`` (None: the first guess and
     the inverse kinematics; ``search_limbs``: the limb search first) -> the states and their
@@ -905,7 +971,7 @@ def _run(
     states, energies = [], []
     for lo in range(0, len(clouds), _CHUNK):
         hi = min(lo + _CHUNK, len(clouds))
-        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi])
+        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi], None if views is None else views[lo:hi])
         if start is None:
             s = _initial_state(tm[lo:hi], tj[lo:hi], b)
             init = _Weights(False, 0.0, 1.0, 0.03, 0.03, None)
@@ -926,6 +992,7 @@ def solve_skeleton(
     joints_m: npt.ArrayLike,
     *,
     options: SolveOptions | None = None,
+    views: Sequence[Sequence[Camera]] | None = None,
 ) -> SolveResult:
     """Fit the body model to each fused cloud from H hypotheses of the network (module doc).
 
@@ -934,10 +1001,13 @@ def solve_skeleton(
         markers_m: (H, B, 53, 3) the hypotheses' markers, world, m.
         joints_m: (H, B, 19, 3) their DeMoCap joints.
         options: weights and schedule (default :class:`SolveOptions`).
+        views: per cloud, the calibrated cameras that made it (the rig): a model marker
+            outside every camera's view is not charged for having no point near it (hands
+            over the head above the view's top edge). None: every marker counts as seen.
 
     Raises:
-        ValidationError: shapes that do not match, non-finite values, or a cloud with fewer
-            than 2 points.
+        ValidationError: shapes that do not match, non-finite values, a cloud with fewer
+            than 2 points, or ``views`` not one entry per cloud.
     """
     opt = options or SolveOptions()
     pts = [
@@ -954,6 +1024,9 @@ def solve_skeleton(
         ),
         np.float64,
     )
+    if views is not None and len(views) != n_b:
+        msg = f"views has {len(views)} entries for {n_b} clouds; give one camera list per cloud"
+        raise ValidationError(msg)
     for i, p in enumerate(pts):
         if p.shape[0] < 2:
             msg = f"cloud {i} has {p.shape[0]} point(s); the skeleton solve needs at least 2"
@@ -978,10 +1051,11 @@ def solve_skeleton(
     # only the ``keep_starts`` best of each frame go on (most starts end where another does).
     frames = np.tile(np.arange(n_b), n_h)
     flat_clouds = [pts[i] for i in frames]
+    flat_views = None if views is None else [views[i] for i in frames]
     flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
     steps = _schedule(opt)
     cut = min(opt.prune_after, len(steps)) if n_h > opt.keep_starts else len(steps)
-    s_all, e_all = _run(flat_clouds, flat_m, flat_j, steps[:cut], opt)
+    s_all, e_all = _run(flat_clouds, flat_m, flat_j, steps[:cut], opt, views=flat_views)
     alive = np.arange(n_h * n_b)
     if cut < len(steps):
         order = np.argsort(e_all.numpy().reshape(n_h, n_b), axis=0, kind="stable")
@@ -994,6 +1068,7 @@ def solve_skeleton(
             steps[cut:],
             opt,
             start=s_all.take(sel),
+            views=None if flat_views is None else [flat_views[i] for i in alive],
         )
         e_all = torch.full((n_h * n_b,), float("inf"), dtype=torch.float64)
         e_all[sel] = e_alive
@@ -1006,7 +1081,9 @@ def solve_skeleton(
     s_best = s_all.take(torch.from_numpy(np.searchsorted(alive, won)))
     e_best = torch.from_numpy(energy[best, np.arange(n_b)].copy())
     if opt.limb_search:
-        s_best, e_best = _search_limbs(pts, flat_m[won], flat_j[won], s_best, e_best, opt)
+        s_best, e_best = _search_limbs(
+            pts, flat_m[won], flat_j[won], s_best, e_best, opt, views=views
+        )
     q = _pose(s_best, _basis())
     return SolveResult(
         markers_m=q.markers.numpy(),
@@ -1025,10 +1102,12 @@ def _search_limbs(
     s: _State,
     energy: torch.Tensor,
     opt: SolveOptions,
+    *,
+    views: Sequence[Sequence[Camera]] | None = None,
 ) -> tuple[_State, torch.Tensor]:
     """The limb search and its refinement (:attr:`SolveOptions.limb_search`) from the
     solutions ``s`` with selection energies ``energy`` (B,); a frame keeps the better."""
     steps = _schedule(opt, gate_start_m=opt.refine_gate_start_m, iterations=opt.refine_iterations)
-    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=s, search_limbs=True)
+    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=s, search_limbs=True, views=views)
     better = e_new < energy
     return s_new.where(better, s), torch.where(better, e_new, energy)

@@ -17,6 +17,7 @@ from mocaprig.process.democap.config import DemocapConfig, Variant
 from mocaprig.process.democap.dataset import make_pool, make_sample
 from mocaprig.process.democap.infer import DemocapPredictor, ensemble_rotations
 from mocaprig.process.democap.model import build_network
+from mocaprig.process.democap.simdata import Camera, sample_rig
 
 
 def _checkpoint(cfg: DemocapConfig) -> Checkpoint:
@@ -206,3 +207,21 @@ def test_a_sparse_cloud_is_solved_from_the_larger_ensemble(tiny_config: DemocapC
     one = DemocapPredictor(ck, rotations=1, sparse_points=cut).predict_many([sparse])
     alone = DemocapPredictor(ck, rotations=1, sparse_rotations=None).predict_many([sparse])
     np.testing.assert_allclose(one[0].joints_m, alone[0].joints_m, atol=1e-12)
+
+
+def test_the_rig_views_reach_the_solve_of_each_cloud(tiny_config: DemocapConfig) -> None:
+    """Dense and sparse clouds each get their own camera list: the same as solving them one
+    at a time with their views; a rig that sees none of the body changes the result."""
+    ck = _checkpoint(tiny_config)
+    dense, sparse = _cloud(), _cloud()[::3]
+    cut = (len(dense) + len(sparse)) // 2
+    rig = sample_rig(np.random.default_rng(3))
+    far = [Camera(c.centre_m + np.array([0.0, 0.0, 50.0]), c.r_cw, c.focal_px) for c in rig]
+    pred = DemocapPredictor(ck, rotations=3, sparse_rotations=6, sparse_points=cut)
+    both = pred.predict_many([sparse, dense], views=[far, rig])
+    (alone,) = pred.predict_many([sparse], views=[far])
+    np.testing.assert_allclose(both[0].joints_m, alone.joints_m, atol=1e-9)
+    (blind,) = pred.predict_many([sparse])
+    assert not np.allclose(alone.joints_m, blind.joints_m, atol=1e-6)
+    with pytest.raises(ValidationError, match="one camera list per cloud"):
+        pred.predict_many([sparse, dense], views=[rig])

@@ -25,7 +25,7 @@ from mocaprig.process.body import (
     rest_offsets,
 )
 from mocaprig.process.democap import solve as S
-from mocaprig.process.democap.simdata import pose_frames
+from mocaprig.process.democap.simdata import in_frustum, pose_frames, sample_rig
 
 
 def _take(seed: int) -> tuple[BodyShape, np.ndarray, np.ndarray]:
@@ -274,6 +274,47 @@ def test_limb_candidates_score_as_the_fully_posed_body_does() -> None:
         d_h = torch.cdist(held, data.cloud).min(dim=2).values
         const = S._gm(d_h**2, 0.1)[0].sum(1)
         torch.testing.assert_close(got, whole - const[:, None], rtol=1e-9, atol=1e-9)
+
+
+def test_the_solve_sees_what_the_rig_sees() -> None:
+    """Its view test is simdata.in_frustum's, per problem and camera list (padded rigs)."""
+    rng = np.random.default_rng(6)
+    rigs = [sample_rig(rng, num_cameras=n) for n in (4, 2, 3)]
+    pts = rng.uniform([-3.0, -3.0, -0.5], [3.0, 3.0, 3.0], (3, 400, 3))
+    views = S._Views.of(rigs)
+    got = views.seen(torch.from_numpy(pts)).numpy()
+    want = np.array([in_frustum(p, rig).any(axis=0) for p, rig in zip(pts, rigs, strict=True)])
+    assert 0.1 < want.mean() < 0.9  # the test has both
+    np.testing.assert_array_equal(got, want.astype(float))
+
+
+def test_a_marker_no_camera_sees_is_not_charged_for_its_missing_point() -> None:
+    """Hands over the head above the cameras' view have no points: with the rig's views the
+    selection energy charges only the markers a camera could have seen; the solve still fits."""
+    _, mk, jt = _take(3)
+    rng = np.random.default_rng(2)
+    rig = sample_rig(rng)
+    frame = int(np.argmax(mk[:, :, 2].max(axis=1)))  # arms highest
+    # the body raised until its hands are over the view's top edge; the cloud is what is seen
+    lift = 2.05 - mk[frame, :, 2].max()
+    m, j = mk[frame] + (0, 0, lift), jt[frame] + (0, 0, lift)
+    seen = in_frustum(m, rig).any(axis=0)
+    assert 3 <= (~seen).sum() < 20
+    cloud = m[seen] + rng.normal(0, 0.003, (int(seen.sum()), 3))
+    b = S._basis()
+    q = S._pose(S._initial_state(m[None], j[None], b), b)
+    blind = S._selection_energy(q, S._data([cloud], m[None], j[None]), 0.03)
+    aware = S._selection_energy(q, S._data([cloud], m[None], j[None], [rig]), 0.03)
+    model_seen = S._Views.of([rig]).seen(q.markers)[0].numpy().astype(bool)
+    d = np.linalg.norm(q.markers[0].numpy()[~model_seen, None] - cloud[None], axis=-1).min(1)
+    charge = float((d**2 / (0.03**2 + d**2)).sum())  # ρ_c / c² of the unseen markers
+    assert charge > 3.0
+    np.testing.assert_allclose(float(blind[0] - aware[0]), charge, rtol=1e-9)
+    est_m, est_j = m + rng.normal(0, 0.02, m.shape), j + rng.normal(0, 0.02, j.shape)
+    sol = S.solve_skeleton([cloud], est_m[None, None], est_j[None, None], views=[rig])
+    assert _mpjpe_mm(sol.joints_m[0], j) < 15.0
+    with pytest.raises(ValidationError, match="one camera list per cloud"):
+        S.solve_skeleton([cloud], est_m[None, None], est_j[None, None], views=[rig, rig])
 
 
 def test_bad_inputs_are_refused() -> None:
