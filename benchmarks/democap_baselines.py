@@ -47,6 +47,7 @@ from mocaprig.process.democap.evaluate import evaluate, held_out_pool
 from mocaprig.process.democap.geometry import to_world_frame
 from mocaprig.process.democap.infer import DemocapPredictor, Prediction
 from mocaprig.process.democap.model import build_network
+from mocaprig.process.democap.simdata import Camera
 from mocaprig.process.democap.train import TrainOptions, train
 
 
@@ -59,7 +60,12 @@ class _MeanPose(DemocapPredictor):
         super().__init__(Checkpoint(config=cfg, model=build_network(cfg)), rotations=1)
         self._markers_n, self._joints_n = markers_n, joints_n
 
-    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
+    def predict_many(
+        self,
+        clouds: Sequence[npt.ArrayLike],
+        *,
+        views: Sequence[Sequence[Camera]] | None = None,  # no solve: nothing to tell it
+    ) -> list[Prediction]:
         out = []
         for c in clouds:
             _, _, norm, centre = prepare_cloud(np.asarray(c, np.float64), size_px=self.size_px)

@@ -79,7 +79,8 @@ def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
     mask = np.zeros((4, n))
     for i, c in enumerate(clouds):
         cloud[i, : len(c)], mask[i, : len(c)] = c, 1.0
-    data = S._Data(*(torch.from_numpy(a) for a in (cloud, mask, tm, tj)))
+    t_cloud, t_mask, t_tm, t_tj = (torch.from_numpy(a) for a in (cloud, mask, tm, tj))
+    data = S._Data(t_cloud, t_mask, t_tm, t_tj)
     for w in (
         S._Weights(False, 0.0, 1.0, 0.03, 0.03, None),
         S._Weights(True, 0.05, 0.015, 0.05, 0.08, 0.1),
