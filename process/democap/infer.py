@@ -378,25 +378,16 @@ class DemocapPredictor:
     def _solve(
         self,
         points: list[FloatArray],
-        rows: npt.NDArray[np.intp],
-        markers: FloatArray,
-        joints: FloatArray,
         mk: FloatArray,
         jt: FloatArray,
         views: Sequence[Sequence[Camera]] | None,
     ) -> SolveResult:
-        """The solve of the clouds ``rows`` of ``points`` (``views``: their cameras, aligned
-        with ``points``) from their combined estimate and each turn's (a single turn is the
-        one start)."""
+        """The solve of ``points`` (``views``: their cameras) from the turns' estimates
+        (K, B, ...): their combination, then each turn's (a single turn is the one start)."""
+        markers, joints = self._combine(mk), self._combine(jt)
         hyp_m = markers[None] if len(mk) == 1 else np.concatenate([markers[None], mk])
         hyp_j = joints[None] if len(jt) == 1 else np.concatenate([joints[None], jt])
-        return solve_skeleton(
-            [points[i] for i in rows],
-            hyp_m[:, rows],
-            hyp_j[:, rows],
-            options=self.solve_options,
-            views=None if views is None else [views[int(i)] for i in rows],
-        )
+        return solve_skeleton(points, hyp_m, hyp_j, options=self.solve_options, views=views)
 
     def predict_many(
         self,
@@ -432,20 +423,18 @@ class DemocapPredictor:
         sol = _Solved.empty(n)
         dense = np.flatnonzero(~sparse)
         if len(dense):
-            sol.put(dense, self._solve(points, dense, markers, joints, mk, jt, views))
+            sub, sub_views = _rows(points, views, dense)
+            sol.put(dense, self._solve(sub, mk[:, dense], jt[:, dense], sub_views))
         few = np.flatnonzero(sparse)
         if len(few):
+            sub, sub_views = _rows(points, views, few)
             t_net = time.perf_counter()
-            xm, xj = self._turn_estimates([points[i] for i in few], self._sparse_turns)
+            xm, xj = self._turn_estimates(sub, self._sparse_turns)
             for key, v in self.last_timings_s.items():
                 timings[key] += v
             t3 += time.perf_counter() - t_net  # the network's time is not the solve's
             all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
-            every = np.arange(len(few))
-            sub = [points[i] for i in few]
-            sub_views = None if views is None else [views[int(i)] for i in few]
-            combined_m, combined_j = self._combine(all_m), self._combine(all_j)
-            sol.put(few, self._solve(sub, every, combined_m, combined_j, all_m, all_j, sub_views))
+            sol.put(few, self._solve(sub, all_m, all_j, sub_views))
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
         return [
@@ -457,6 +446,16 @@ class DemocapPredictor:
             )
             for i in range(n)
         ]
+
+
+def _rows(
+    points: list[FloatArray],
+    views: Sequence[Sequence[Camera]] | None,
+    rows: npt.NDArray[np.intp],
+) -> tuple[list[FloatArray], list[Sequence[Camera]] | None]:
+    """The clouds ``rows`` and their cameras."""
+    picked = [points[int(i)] for i in rows]
+    return picked, None if views is None else [views[int(i)] for i in rows]
 
 
 @dataclass(frozen=True, slots=True)

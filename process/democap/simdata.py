@@ -60,6 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+import torch
 from scipy.spatial.transform import Rotation
 
 from mocaprig.calib import markers as calib_markers
@@ -81,6 +82,7 @@ __all__ = [
     "ObservationModel",
     "PoseFrames",
     "in_frustum",
+    "in_frustum_torch",
     "merge_views",
     "observe",
     "pose_frames",
@@ -296,20 +298,30 @@ def sample_rig(rng: np.random.Generator, *, num_cameras: int = 4) -> list[Camera
 def in_frustum(points_m: FloatArray, cams: list[Camera]) -> BoolArray:
     """(K cameras, P points) booleans: the point projects into the camera's image (with the
     :data:`IMAGE_MARGIN_PX` margin) at 0.3–6 m, whatever is in the way."""
-    p = np.asarray(points_m, np.float64).reshape(-1, 3)
-    out = np.zeros((len(cams), p.shape[0]), dtype=bool)
-    for k, cam in enumerate(cams):
-        rel = p - cam.centre_m
-        pc = rel @ cam.r_cw.T
-        z = pc[:, 2]
-        zs = np.where(z > 1e-6, z, 1.0)
-        u = cam.focal_px * pc[:, 0] / zs + IMAGE_W / 2
-        v = cam.focal_px * pc[:, 1] / zs + IMAGE_H / 2
-        d2 = np.einsum("ij,ij->i", rel, rel)
-        mg = IMAGE_MARGIN_PX
-        ok = (z > RANGE_M[0]) & (d2 < RANGE_M[1] ** 2)
-        out[k] = ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
-    return out
+    p = np.asarray(points_m, np.float64).reshape(1, -1, 3)
+    centre = np.array([[c.centre_m for c in cams]], np.float64).reshape(1, len(cams), 3)
+    r_cw = np.array([[c.r_cw for c in cams]], np.float64).reshape(1, len(cams), 3, 3)
+    focal = np.array([[c.focal_px for c in cams]], np.float64).reshape(1, len(cams))
+    seen = in_frustum_torch(*(torch.from_numpy(a) for a in (p, centre, r_cw, focal)))
+    return np.asarray(seen[0].numpy().T)
+
+
+def in_frustum_torch(
+    points_m: torch.Tensor, centre_m: torch.Tensor, r_cw: torch.Tensor, focal_px: torch.Tensor
+) -> torch.Tensor:
+    """:func:`in_frustum` for B problems at once, each with its own rig: points (B, M, 3),
+    the cameras' centres (B, K, 3), world -> camera rotations (B, K, 3, 3) and focal lengths
+    (B, K) -> (B, M, K) booleans. A camera of focal 0 (padding a smaller rig) sees nothing."""
+    rel = points_m[:, :, None] - centre_m[:, None]  # (B, M, K, 3)
+    pc = (r_cw[:, None] @ rel[..., None])[..., 0]
+    z = pc[..., 2]
+    zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+    f = focal_px[:, None]
+    u = f * pc[..., 0] / zs + IMAGE_W / 2
+    v = f * pc[..., 1] / zs + IMAGE_H / 2
+    mg = IMAGE_MARGIN_PX
+    ok = (f > 0) & (z > RANGE_M[0]) & ((rel * rel).sum(-1) < RANGE_M[1] ** 2)
+    return ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
 
 
 @dataclass(frozen=True, slots=True)

@@ -96,7 +96,7 @@ from mocaprig.process.body.skeleton import (
     PARENTS,
     ROOT_DIM,
 )
-from mocaprig.process.democap.simdata import IMAGE_H, IMAGE_MARGIN_PX, IMAGE_W, RANGE_M, Camera
+from mocaprig.process.democap.simdata import Camera, in_frustum_torch
 from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = ["REFERENCE_HEIGHT_M", "SolveOptions", "SolveResult", "solve_skeleton"]
@@ -516,8 +516,7 @@ class _Data:
 
 @dataclass(frozen=True, slots=True)
 class _Views:
-    """Each problem's cameras (padded ones have focal 0): what :func:`simdata.in_frustum`
-    tests, in torch."""
+    """Each problem's cameras, padded to the largest rig with cameras of focal 0."""
 
     centre: torch.Tensor  # (P, K, 3) world, m
     r_cw: torch.Tensor  # (P, K, 3, 3) world -> camera
@@ -535,19 +534,15 @@ class _Views:
     def rows(self, lo: int, hi: int) -> _Views:
         return _Views(self.centre[lo:hi], self.r_cw[lo:hi], self.focal[lo:hi])
 
+    def take(self, idx: npt.NDArray[np.intp]) -> _Views:
+        i = torch.from_numpy(np.asarray(idx, np.int64))
+        return _Views(self.centre[i], self.r_cw[i], self.focal[i])
+
     def seen(self, pts: torch.Tensor) -> torch.Tensor:
+        """1.0 where a point (P, ..., 3) lies in some camera's view of its problem (P, ...)."""
         shape = pts.shape
-        rel = pts.reshape(shape[0], -1, 1, 3) - self.centre[:, None]  # (P, M, K, 3)
-        pc = (self.r_cw[:, None] @ rel[..., None])[..., 0]
-        z = pc[..., 2]
-        zs = torch.where(z > 1e-6, z, torch.ones_like(z))
-        f = self.focal[:, None]
-        u = f * pc[..., 0] / zs + IMAGE_W / 2
-        v = f * pc[..., 1] / zs + IMAGE_H / 2
-        mg = IMAGE_MARGIN_PX
-        ok = (f > 0) & (z > RANGE_M[0]) & ((rel**2).sum(-1) < RANGE_M[1] ** 2)
-        ok = ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
-        return ok.any(-1).to(pts.dtype).reshape(shape[:-1])
+        inside = in_frustum_torch(pts.reshape(shape[0], -1, 3), self.centre, self.r_cw, self.focal)
+        return inside.any(-1).to(pts.dtype).reshape(shape[:-1])
 
 
 def _nearest(
@@ -913,7 +908,7 @@ def _data(
     clouds: Sequence[FloatArray],
     tm: FloatArray,
     tj: FloatArray,
-    views: Sequence[Sequence[Camera]] | None = None,
+    views: _Views | None = None,
 ) -> _Data:
     """Problems' tensors; clouds padded with far points that no term sees."""
     p_n = len(clouds)
@@ -928,7 +923,7 @@ def _data(
         mask=torch.from_numpy(mask),
         tm=torch.from_numpy(np.ascontiguousarray(tm)),
         tj=torch.from_numpy(np.ascontiguousarray(tj)),
-        views=None if views is None else _Views.of(views),
+        views=views,
     )
 
 
@@ -962,7 +957,7 @@ def _run(
     *,
     start: _State | None = None,
     search_limbs: bool = False,
-    views: Sequence[Sequence[Camera]] | None = None,
+    views: _Views | None = None,
 ) -> tuple[_State, torch.Tensor]:
     """``steps`` of LM on each problem, in chunks, from ``start`` (None: the first guess and
     the inverse kinematics; ``search_limbs``: the limb search first) -> the states and their
@@ -971,7 +966,8 @@ def _run(
     states, energies = [], []
     for lo in range(0, len(clouds), _CHUNK):
         hi = min(lo + _CHUNK, len(clouds))
-        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi], None if views is None else views[lo:hi])
+        rig = None if views is None else views.rows(lo, hi)
+        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi], rig)
         if start is None:
             s = _initial_state(tm[lo:hi], tj[lo:hi], b)
             init = _Weights(False, 0.0, 1.0, 0.03, 0.03, None)
@@ -1051,7 +1047,8 @@ def solve_skeleton(
     # only the ``keep_starts`` best of each frame go on (most starts end where another does).
     frames = np.tile(np.arange(n_b), n_h)
     flat_clouds = [pts[i] for i in frames]
-    flat_views = None if views is None else [views[i] for i in frames]
+    rig = None if views is None else _Views.of(views)  # (B, K) cameras, once
+    flat_views = None if rig is None else rig.take(frames)
     flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
     steps = _schedule(opt)
     cut = min(opt.prune_after, len(steps)) if n_h > opt.keep_starts else len(steps)
@@ -1068,7 +1065,7 @@ def solve_skeleton(
             steps[cut:],
             opt,
             start=s_all.take(sel),
-            views=None if flat_views is None else [flat_views[i] for i in alive],
+            views=None if flat_views is None else flat_views.take(alive),
         )
         e_all = torch.full((n_h * n_b,), float("inf"), dtype=torch.float64)
         e_all[sel] = e_alive
@@ -1082,7 +1079,7 @@ def solve_skeleton(
     e_best = torch.from_numpy(energy[best, np.arange(n_b)].copy())
     if opt.limb_search:
         s_best, e_best = _search_limbs(
-            pts, flat_m[won], flat_j[won], s_best, e_best, opt, views=views
+            pts, flat_m[won], flat_j[won], s_best, e_best, opt, views=rig
         )
     q = _pose(s_best, _basis())
     return SolveResult(
@@ -1103,7 +1100,7 @@ def _search_limbs(
     energy: torch.Tensor,
     opt: SolveOptions,
     *,
-    views: Sequence[Sequence[Camera]] | None = None,
+    views: _Views | None = None,
 ) -> tuple[_State, torch.Tensor]:
     """The limb search and its refinement (:attr:`SolveOptions.limb_search`) from the
     solutions ``s`` with selection energies ``energy`` (B,); a frame keeps the better."""

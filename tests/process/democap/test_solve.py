@@ -305,7 +305,7 @@ def test_a_marker_no_camera_sees_is_not_charged_for_its_missing_point() -> None:
     b = S._basis()
     q = S._pose(S._initial_state(m[None], j[None], b), b)
     blind = S._selection_energy(q, S._data([cloud], m[None], j[None]), 0.03)
-    aware = S._selection_energy(q, S._data([cloud], m[None], j[None], [rig]), 0.03)
+    aware = S._selection_energy(q, S._data([cloud], m[None], j[None], S._Views.of([rig])), 0.03)
     model_seen = S._Views.of([rig]).seen(q.markers)[0].numpy().astype(bool)
     d = np.linalg.norm(q.markers[0].numpy()[~model_seen, None] - cloud[None], axis=-1).min(1)
     charge = float((d**2 / (0.03**2 + d**2)).sum())  # ρ_c / c² of the unseen markers
