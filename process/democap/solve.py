@@ -299,9 +299,8 @@ def _groups(marker_joint: npt.NDArray[np.int64]) -> tuple[_Group, ...]:
 def _subtree(*tops: str) -> npt.NDArray[np.bool_]:
     """(26,): which joints are one of ``tops`` or below one of them."""
     under = np.zeros(len(JOINTS), dtype=bool)
-    under[[JOINTS.index(t) for t in tops]] = True
-    for j in range(1, len(JOINTS)):  # parents come before their children
-        under[j] |= under[PARENTS[j]]
+    for t in tops:
+        under[list(subtree_joints(JOINTS.index(t)))] = True
     return under
 
 
@@ -802,9 +801,8 @@ _LIMB_CHUNK = 16
 class _Limb:
     dofs: torch.Tensor  # (K,) the DoF the grid sets
     grid: torch.Tensor  # (C, K) rad, within the limits
-    fine: (
-        torch.Tensor
-    )  # (1 + F, K) rad: none, then ± half the grid's step per DoF, every combination
+    # (1 + F, K) rad: none, then ± half the grid's step per DoF, every combination
+    fine: torch.Tensor
     markers: torch.Tensor  # (53,) bool: the markers that move with the limb
     top: int  # the joint whose subtree moves
     marker_rows: torch.Tensor  # (m,): per moving marker, its joint's row in subtree_joints(top)
