@@ -4,7 +4,10 @@ Held-out simulated clouds (the ``in-distribution`` test stream, seed ``--seed``,
 go through the committed ``lite`` network (the 3-turn ensemble, as shipped) and then through
 :func:`mocaprig.process.democap.solve.solve_skeleton` with 1 start (the ensemble's estimate),
 the default starts (the ensemble's and each turn's, and each of them bent at the hips: 8) with
-and without the limb search after them, and configurations in between; each is timed in
+and without the limb search after them, and configurations in between; then the predictor's
+whole solve stage (:class:`DemocapPredictor`: six turns for a sparse cloud) without and with
+the pose bank's second solve (the default: :mod:`mocaprig.process.democap.pose_bank`), its
+time read from ``last_timings_s["solve_s"]`` (the network's passes left out); each is timed in
 rounds that interleave them (a shared machine: a load change hits all alike), as seconds
 per frame and as a ratio to the network's time in the same round, with its MPJPE against
 the truth (17 joints; a sanity figure, the evaluations are ``mocaprig democap eval``).
@@ -81,7 +84,11 @@ def main() -> int:
         ),
         f"{k + 1} starts + bent + limb search (default)": (k + 1, SolveOptions()),
     }
-    rows: dict[str, list[float]] = {c: [] for c in configs}
+    predictors = {
+        "predictor solve stage, no pose bank": DemocapPredictor(pose_bank=False),
+        "predictor solve stage + pose bank (default)": DemocapPredictor(),
+    }
+    rows: dict[str, list[float]] = {c: [] for c in [*configs, *predictors]}
     net_s: list[float] = []
     err: dict[str, float] = {}
     keep = list(EVAL_JOINTS)
@@ -97,6 +104,10 @@ def main() -> int:
             res = solve_skeleton(clouds, hm[:n], hj[:n], options=opt)
             rows[name].append((time.perf_counter() - t0) / len(clouds))
             err[name] = mpjpe(res.joints_m)
+        for name, pred in predictors.items():
+            out = pred.predict_many(clouds)
+            rows[name].append(pred.last_timings_s["solve_s"] / len(clouds))
+            err[name] = mpjpe(np.array([p.joints_m for p in out]))
     err["network (ensemble)"] = mpjpe(hj[0])
     load_end = os.getloadavg()
     net_med = float(np.median(net_s))
@@ -112,7 +123,7 @@ def main() -> int:
             "mpjpe_mm": round(err[name], 1),
         }
         print(
-            f"  {name:50s} {1000 * med:7.1f} ms a frame ({med / net_med:4.2f}x the network), "
+            f"  {name:55s} {1000 * med:7.1f} ms a frame ({med / net_med:4.2f}x the network), "
             f"MPJPE {err[name]:.1f} mm"
         )
     print(f"  network alone: MPJPE {err['network (ensemble)']:.1f} mm")

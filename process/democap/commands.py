@@ -348,8 +348,55 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         help="fit the body model to each cloud (as the replay does; ~10x the network's time "
         "on a CPU, so off by default live)",
     )
+    lv.add_argument(
+        "--no-pose-bank",
+        action="store_true",
+        help="with --solve: start it from the network's estimates only, not also from the "
+        "committed bank of real poses",
+    )
     add_json_flag(lv)
     lv.set_defaults(func=democap_live)
+
+    pb = sub.add_parser(
+        "pose-bank",
+        help="build the skeleton solve's bank of real poses from the corpus's train split",
+        description="Build the pose bank (k-means medoids of the train split's poses) that the "
+        "skeleton solve also starts from.",
+        epilog=_BANK_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    pb.add_argument("--out", type=Path, required=True, metavar="OUT.npz", help="the bank file")
+    pb.add_argument(
+        "--corpus",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="corpus folder (default: ../shared/data/motion/corpus beside the repository)",
+    )
+    pb.add_argument("--size", type=int, default=256, help="poses (default: %(default)s)")
+    pb.add_argument(
+        "--rate",
+        type=float,
+        default=10.0,
+        metavar="HZ",
+        help="frames per second of each clip clustered (default: %(default)s)",
+    )
+    pb.add_argument("--seed", type=int, default=0, help="k-means seed (default: %(default)s)")
+    pb.add_argument("--overwrite", action="store_true", help="replace an existing bank file")
+    add_json_flag(pb)
+    pb.set_defaults(func=democap_pose_bank)
+
+
+_BANK_EPILOG = """\
+Every clip of the corpus's train split (process/democap/data/corpus_split.toml) is retargeted
+onto the 1.75 m reference body at --rate Hz, its heading removed, and the frames clustered by
+their joint positions; each cluster's medoid (a real frame) is a pose of the bank. The
+committed bank (process/democap/data/pose_bank.npz) is the default of this command.
+
+examples:
+  mocaprig democap pose-bank --out process/democap/data/pose_bank.npz --overwrite
+  mocaprig democap pose-bank --corpus ~/cmu --size 128 --out bank128.npz --json
+"""
 
 
 _LIVE_EPILOG = """\
@@ -385,6 +432,12 @@ def _add_inference_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the network's estimates as they are, without fitting the body model to the "
         "cloud (the paper's output; the solve is the default)",
+    )
+    parser.add_argument(
+        "--no-pose-bank",
+        action="store_true",
+        help="the solve starts from the network's estimates only, not also from the committed "
+        "bank of real poses (faster; worse where the network is far off)",
     )
 
 
@@ -469,6 +522,40 @@ def democap_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def democap_pose_bank(args: argparse.Namespace) -> int:
+    """Handler of ``mocaprig democap pose-bank``; returns 0.
+
+    Raises:
+        ValidationError: no corpus folder, a missing clip, or a bad size or rate.
+        RecordingError: the output exists without ``--overwrite``.
+    """
+    from mocaprig.errors import ValidationError
+    from mocaprig.process.democap.corpus import load_split, read_corpus_clips
+    from mocaprig.process.democap.pose_bank import build_pose_bank, save_pose_bank
+
+    corpus = _corpus_dir(args.corpus)
+    if corpus is None:
+        msg = (
+            "no motion corpus beside the repository (../shared/data/motion/corpus); "
+            "pass --corpus DIR"
+        )
+        raise ValidationError(msg)
+    if Path(args.out).exists() and not args.overwrite:
+        from mocaprig.errors import RecordingError
+
+        msg = f"{args.out} exists; pass --overwrite to replace it"
+        raise RecordingError(msg)
+    clips = read_corpus_clips(corpus, load_split().in_split("train"))
+    bank = build_pose_bank(clips, size=args.size, rate_hz=args.rate, seed=args.seed)
+    save_pose_bank(bank, args.out, overwrite=args.overwrite)
+    summary = {"out": str(args.out), "poses": len(bank), "clips": len(bank.source)}
+    if args.json:
+        emit_json(summary)
+    else:
+        print(f"{len(bank)} poses from {len(bank.source)} clips -> {args.out}")
+    return 0
+
+
 def _corpus_dir(arg: Path | None) -> Path | None:
     from mocaprig.process.democap.corpus import default_corpus_dir
 
@@ -544,6 +631,7 @@ def democap_eval(args: argparse.Namespace) -> int:
         None if args.ckpt is None else Path(args.ckpt),
         rotations=args.rotations,
         solve=not args.no_solve,
+        pose_bank=not args.no_pose_bank,
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)
@@ -622,6 +710,8 @@ def democap_eval(args: argparse.Namespace) -> int:
         # the ensemble a sparse cloud's solve starts from (None: never another)
         "sparse_rotations": predictor.sparse_rotations if predictor.solves else None,
         "sparse_points": predictor.sparse_points,
+        # poses in the bank the solve also starts from (None: the network's starts only)
+        "pose_bank_poses": None if predictor.pose_bank is None else len(predictor.pose_bank),
         "seed": args.seed,
         "corpus": None if corpus is None else str(corpus),
         "trained_corpus_clips": sorted(predictor.checkpoint.train_motions),
@@ -705,6 +795,7 @@ def democap_run(args: argparse.Namespace) -> int:
             None if args.ckpt is None else Path(args.ckpt),
             rotations=args.rotations,
             solve=not args.no_solve,
+            pose_bank=not args.no_pose_bank,
         ),
         every=args.every,
         overwrite=args.overwrite,
@@ -772,6 +863,7 @@ def democap_live(args: argparse.Namespace) -> int:
         None if args.ckpt is None else Path(args.ckpt),
         rotations=args.rotations,
         solve=args.solve,
+        pose_bank=not args.no_pose_bank,
         workers=args.rotations,
     )
     if args.mock and args.seconds > args.world_seconds:

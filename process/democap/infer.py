@@ -32,6 +32,12 @@ through the network for those clouds alone, and the solve starts from their medi
 every turn. The network's estimates of a sparse cloud are far off, and more starts find the
 body more often (docs/democap.md); a dense cloud costs nothing more.
 
+**Pose bank** (``pose_bank=True``, the default with the solve): a cloud the solve explains
+poorly (energy per point above ``BankSearch.energy_per_point``) is solved once more from the
+best placements of the committed bank of real poses (:mod:`.pose_bank`), and the solution
+that explains the cloud better is kept: where the network is far off every start is, and the
+bank's are not.
+
 **Batched turns** (``workers=1``, the default): the front/back views of every turn (and every
 cloud) go through the network as one batch, ``2·K·B`` views: one pass instead of K, which on a
 CPU costs about 15 % less than K passes of 2 views (fewer per-operation overheads for the
@@ -47,7 +53,7 @@ import time
 import weakref
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -69,6 +75,7 @@ from mocaprig.process.democap.model import (
     fuse_views_torch,
     view_keypoints,
 )
+from mocaprig.process.democap.pose_bank import BankSearch, PoseBank, bank_starts, load_pose_bank
 from mocaprig.process.democap.simdata import Camera
 from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
@@ -193,6 +200,13 @@ class DemocapPredictor:
             turns instead (the turns not already run go through the network for it alone):
             where the cloud is sparse the network's estimates are far off and more starts
             find the body more often; ``None`` (or no more than ``rotations``) for never.
+        pose_bank: with the solve, a cloud the solve explains poorly (``bank_search``'s
+            ``energy_per_point``) is solved once more from the best placements of a bank of
+            real poses (:mod:`.pose_bank`), and whichever solution explains it better is
+            kept: where every network start is far off (a body bent double, a pose of an
+            activity never trained on) a bank pose is often near. True: the committed bank;
+            False: none; or a :class:`PoseBank`.
+        bank_search: how the bank is searched (default :class:`BankSearch`).
         workers: how many network passes the K turns are split into, run at once: 1 (the
             default) puts the front/back views of all turns in one batch on the calling
             thread (the least work); ``W`` > 1 makes ``min(W, K)`` batches of consecutive
@@ -217,6 +231,8 @@ class DemocapPredictor:
         solve_options: SolveOptions | None = None,
         sparse_rotations: int | None = SPARSE_ROTATIONS,
         sparse_points: int = SPARSE_POINTS,
+        pose_bank: PoseBank | bool = True,
+        bank_search: BankSearch | None = None,
         workers: int = 1,
     ) -> None:
         self._turns = ensemble_rotations(int(rotations))
@@ -261,6 +277,11 @@ class DemocapPredictor:
         #: whether the estimates are solved skeletons (module doc)
         self.solves = bool(solve) and self.predicts_markers
         self.solve_options = solve_options or SolveOptions()
+        #: the bank of real poses the solve also starts from (None: the network's starts only)
+        self.pose_bank: PoseBank | None = None
+        if self.solves and pose_bank is not False:
+            self.pose_bank = load_pose_bank() if pose_bank is True else pose_bank
+        self.bank_search = bank_search or BankSearch()
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 
@@ -435,6 +456,18 @@ class DemocapPredictor:
             t3 += time.perf_counter() - t_net  # the network's time is not the solve's
             all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
             sol.put(few, self._solve(sub, all_m, all_j, sub_views))
+        sizes = np.array([len(p) for p in points])
+        poor = np.flatnonzero(sol.energy / sizes > self.bank_search.energy_per_point)
+        if self.pose_bank is not None and len(poor):
+            sub, sub_views = _rows(points, views, poor)
+            t_bank = time.perf_counter()
+            bm, bj = bank_starts(sub, sol.height_m[poor], self.pose_bank, search=self.bank_search)
+            timings["bank_search_s"] = time.perf_counter() - t_bank
+            # the bank already holds bent bodies: no bent copies of its starts
+            opt = replace(self.solve_options, bend_starts_rad=())
+            banked = solve_skeleton(sub, bm, bj, options=opt, views=sub_views)
+            better = np.flatnonzero(banked.energy < sol.energy[poor])
+            sol.put(poor[better], _subset(banked, better))
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
         return [
@@ -466,6 +499,7 @@ class _Solved:
     joints_m: FloatArray
     poses: FloatArray
     height_m: FloatArray
+    energy: FloatArray
 
     @staticmethod
     def empty(n: int) -> _Solved:
@@ -474,6 +508,7 @@ class _Solved:
             np.full((n, len(DEMOCAP_JOINT_INDEX), 3), np.nan),
             np.full((n, POSE_DIM), np.nan),
             np.full((n,), np.nan),
+            np.full((n,), np.inf),
         )
 
     def put(self, rows: npt.NDArray[np.intp], sol: SolveResult) -> None:
@@ -481,3 +516,16 @@ class _Solved:
         self.joints_m[rows] = sol.joints_m
         self.poses[rows] = sol.poses
         self.height_m[rows] = sol.height_m
+        self.energy[rows] = sol.energy
+
+
+def _subset(sol: SolveResult, rows: npt.NDArray[np.intp]) -> SolveResult:
+    """The solve's results of frames ``rows``."""
+    return SolveResult(
+        markers_m=sol.markers_m[rows],
+        joints_m=sol.joints_m[rows],
+        poses=sol.poses[rows],
+        height_m=sol.height_m[rows],
+        energy=sol.energy[rows],
+        hypothesis=sol.hypothesis[rows],
+    )

@@ -225,3 +225,35 @@ def test_the_rig_views_reach_the_solve_of_each_cloud(tiny_config: DemocapConfig)
     assert not np.allclose(alone.joints_m, blind.joints_m, atol=1e-6)
     with pytest.raises(ValidationError, match="one camera list per cloud"):
         pred.predict_many([sparse, dense], views=[rig])
+
+
+def test_the_pose_bank_finds_a_body_the_network_is_far_from(tiny_config: DemocapConfig) -> None:
+    """An untrained network's starts leave the solve far off a body bent double; the bank's
+    starts find it, and a predictor without the bank stays where the network put it."""
+    from mocaprig.process.body.kinematics import democap_joints, forward_kinematics
+    from mocaprig.process.body.markers import MarkerSet
+    from mocaprig.process.body.shape import BodyShape
+    from mocaprig.process.democap.pose_bank import BankSearch, load_pose_bank
+
+    bank = load_pose_bank()
+    tilt = Rotation.from_rotvec(bank.poses[:, :3]).as_matrix()[:, 2, 2]
+    q = bank.poses[int(np.argmin(tilt))].copy()  # the most bent pose of the bank
+    q[3:5] = [0.3, -0.2]
+    shape = BodyShape.from_height(1.75)
+    kin = forward_kinematics(q[None], shape)
+    ms = MarkerSet.for_shape(shape)
+    ji = ms.joint_index
+    mk = kin.positions_m[0, ji] + (kin.rotations[0, ji] @ ms.offsets_m[..., None])[..., 0]
+    rng = np.random.default_rng(8)
+    cloud = mk[rng.random(len(mk)) < 0.8] + rng.normal(0.0, 0.003, (1, 3))
+    truth = democap_joints(kin)[0]
+    ck = _checkpoint(tiny_config)
+    (with_bank,) = DemocapPredictor(ck, rotations=1).predict_many([cloud])
+    (without,) = DemocapPredictor(ck, rotations=1, pose_bank=False).predict_many([cloud])
+    assert np.linalg.norm(with_bank.joints_m - truth, axis=-1).mean() < 0.03
+    assert np.linalg.norm(without.joints_m - truth, axis=-1).mean() > 0.06
+    # a cloud explained well enough by the first solve is not searched
+    never = BankSearch(energy_per_point=1.0e9)
+    (left,) = DemocapPredictor(ck, rotations=1, bank_search=never).predict_many([cloud])
+    np.testing.assert_array_equal(left.joints_m, without.joints_m)
+    assert DemocapPredictor(ck, solve=False).pose_bank is None

@@ -1,0 +1,339 @@
+"""Pose bank: real body poses as extra starts of the skeleton solve.
+
+The network's estimates are the solve's starts, and where the network is far off (a body bent
+double, hanging from a bar, a pose of an activity it never saw) every start is, and the solve
+ends in a minimum no gradient step leaves, although the true pose explains the cloud far
+better (docs/democap.md, "Pose bank"). The bank is a fixed set of real poses, independent of
+the network: the medoids of a k-means over the joint positions of motion-capture frames (the
+corpus's ``train`` split, :func:`build_pose_bank`), each stored with its heading removed on the
+reference body (1.75 m). :func:`bank_starts` places every bank pose at every heading of a
+ring on a cloud, scaled to the body's estimated height, slides each onto the cloud
+(translation-only ICP), scores it by how well it explains the cloud (both ways, bounded), and
+returns the best few as starts for :func:`.solve.solve_skeleton`.
+
+The committed bank (:data:`DEFAULT_POSE_BANK`, 256 poses of the 27 training clips at 10 Hz) is
+made by ``mocaprig democap pose-bank --corpus DIR``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import torch
+from scipy.cluster.vq import kmeans2
+from scipy.spatial.transform import Rotation
+
+from mocaprig.errors import ProcessingError, RecordingError, ValidationError
+from mocaprig.process.body import BvhClip, retarget_bvh
+from mocaprig.process.body.kinematics import democap_joints, forward_kinematics
+from mocaprig.process.body.markers import MarkerSet
+from mocaprig.process.body.shape import BodyShape
+from mocaprig.process.body.skeleton import POSE_DIM
+from mocaprig.validation import check_finite, check_positive, check_shape
+
+__all__ = [
+    "DEFAULT_POSE_BANK",
+    "BankSearch",
+    "PoseBank",
+    "bank_starts",
+    "build_pose_bank",
+    "load_pose_bank",
+    "save_pose_bank",
+]
+
+_log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+#: The committed bank (module doc).
+DEFAULT_POSE_BANK = Path(__file__).resolve().parent / "data" / "pose_bank.npz"
+#: Height of the body the bank's poses are stored on (m); starts are scaled from it.
+_BANK_HEIGHT_M = 1.75
+_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True, slots=True)
+class PoseBank:
+    """P real poses, heading removed.
+
+    Attributes:
+        poses: (P, 33) pose vectors (:mod:`process.body.skeleton`) on the reference body
+            (1.75 m): the root turned so that the body's forward axis (+Y) has no heading
+            about +Z (its tilt kept), the root's floor position (x, y) 0, its height kept.
+        source: names of the clips the poses come from.
+    """
+
+    poses: FloatArray
+    source: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        check_finite(check_shape(self.poses, ["P", POSE_DIM], name="PoseBank.poses"))
+        if len(self.poses) == 0:
+            msg = "PoseBank.poses is empty; a bank needs at least one pose"
+            raise ValidationError(msg)
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class BankSearch:
+    """How :func:`bank_starts` searches the bank (lengths in metres).
+
+    Attributes:
+        headings: headings tried per pose, evenly round the vertical.
+        starts: starts returned per cloud, each of a different bank pose.
+        keep: placements (pose, heading) that go on from the coarse round to the fine one.
+        subsample: points of the cloud used in the coarse round (all in the fine one).
+        gate_m: the score's gate ``c`` (Geman–McClure, as the solve's energy).
+        icp_gate_m: pairs farther apart than this do not move a placement (first round;
+            shrinking by 0.7 a step to 0.06 m).
+        energy_per_point: the predictor searches the bank only for clouds whose first
+            solve's selection energy (:attr:`.solve.SolveResult.energy`) per cloud point is
+            above this: a cloud the network's starts explain well is left alone (on the
+            validation sets 6–28 % of the frames are searched, for all of the gain).
+    """
+
+    headings: int = 12
+    starts: int = 3
+    keep: int = 128
+    subsample: int = 96
+    gate_m: float = 0.05
+    icp_gate_m: float = 0.15
+    energy_per_point: float = 0.6
+
+    def __post_init__(self) -> None:
+        for name in ("headings", "starts", "keep", "subsample"):
+            if int(getattr(self, name)) < 1:
+                msg = f"BankSearch.{name} must be >= 1, got {getattr(self, name)}"
+                raise ValidationError(msg)
+        check_positive(self.gate_m, name="BankSearch.gate_m")
+        check_positive(self.icp_gate_m, name="BankSearch.icp_gate_m")
+        if not self.energy_per_point >= 0.0:
+            msg = f"BankSearch.energy_per_point must be >= 0, got {self.energy_per_point}"
+            raise ValidationError(msg)
+
+
+def _without_heading(poses: FloatArray) -> FloatArray:
+    """Poses (P, 33) with the root's heading about +Z and its floor position removed."""
+    r = Rotation.from_rotvec(poses[:, :3]).as_matrix()
+    fwd = r[:, :, 1]
+    psi = np.arctan2(-fwd[:, 0], fwd[:, 1])
+    level = Rotation.from_euler("z", -psi[:, None]).as_matrix() @ r
+    out = poses.copy()
+    out[:, :3] = Rotation.from_matrix(level).as_rotvec()
+    out[:, 3:5] = 0.0
+    return out
+
+
+def build_pose_bank(
+    clips: Sequence[BvhClip], *, size: int = 256, rate_hz: float = 10.0, seed: int = 0
+) -> PoseBank:
+    """A bank of ``size`` poses from motion clips: each clip retargeted onto the reference body
+    (thinned to about ``rate_hz``), every frame's heading removed, k-means (seeded) over the
+    frames' joint positions relative to the pelvis's floor point, and each cluster's medoid
+    (the frame nearest its centre) kept: real poses, within the joint limits the retarget
+    keeps. Fewer than ``size`` poses when clusters come out empty.
+
+    Raises:
+        ValidationError: no clip, ``size`` < 1, a non-positive rate, or fewer frames than
+            ``size``.
+    """
+    if not clips:
+        msg = "build_pose_bank needs at least one clip"
+        raise ValidationError(msg)
+    if size < 1:
+        msg = f"size must be >= 1, got {size}"
+        raise ValidationError(msg)
+    check_positive(rate_hz, name="rate_hz")
+    ref = BodyShape.from_height(_BANK_HEIGHT_M)
+    poses = []
+    for i, clip in enumerate(clips):
+        step = max(1, round(1.0 / (clip.frame_time_s * rate_hz)))
+        thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
+        poses.append(retarget_bvh(thin, ref).poses)
+        _log.info(
+            "pose bank: clip %d/%d %s, %d frames", i + 1, len(clips), clip.name, len(thin.frames)
+        )
+    all_poses = _without_heading(np.concatenate(poses))
+    if len(all_poses) < size:
+        msg = f"the clips give {len(all_poses)} frames at {rate_hz} Hz, fewer than size={size}"
+        raise ValidationError(msg)
+    j = democap_joints(forward_kinematics(all_poses, ref))
+    feat = (j - j[:, :1] * np.array([1.0, 1.0, 0.0])).reshape(len(j), -1)
+    centres, label = kmeans2(feat, size, seed=np.random.default_rng(seed), minit="++", iter=30)
+    medoids = []
+    for k in range(size):
+        idx = np.flatnonzero(label == k)
+        if len(idx):
+            medoids.append(int(idx[np.argmin(((feat[idx] - centres[k]) ** 2).sum(-1))]))
+    return PoseBank(poses=all_poses[np.array(medoids)], source=tuple(c.name for c in clips))
+
+
+def save_pose_bank(bank: PoseBank, path: Path, *, overwrite: bool = False) -> Path:
+    """Write ``bank`` to ``path`` (.npz; float32 poses, the source clips).
+
+    Raises:
+        RecordingError: ``path`` exists and ``overwrite`` is False, or cannot be written.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        msg = f"pose bank {path} exists; pass overwrite=True (--overwrite) to replace it"
+        raise RecordingError(msg)
+    try:
+        with path.open("wb") as f:
+            np.savez_compressed(
+                f,
+                format_version=np.array(_FORMAT_VERSION),
+                poses=bank.poses.astype(np.float32),
+                source=np.array(bank.source, dtype=str),
+            )
+    except OSError as exc:
+        msg = f"pose bank {path} cannot be written ({exc})"
+        raise RecordingError(msg) from exc
+    return path
+
+
+def load_pose_bank(path: Path | None = None) -> PoseBank:
+    """Read a bank written by :func:`save_pose_bank` (default: :data:`DEFAULT_POSE_BANK`).
+
+    Raises:
+        ProcessingError: the file is missing, not a bank, or of another format version.
+    """
+    path = DEFAULT_POSE_BANK if path is None else Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            version = int(z["format_version"])
+            poses = np.asarray(z["poses"], np.float64)
+            source = tuple(str(s) for s in z["source"])
+    except (OSError, KeyError, ValueError) as exc:
+        msg = (
+            f"pose bank {path} cannot be read ({exc}); rebuild it with `mocaprig democap pose-bank`"
+        )
+        raise ProcessingError(msg) from exc
+    if version != _FORMAT_VERSION:
+        msg = f"pose bank {path}: format_version {version}, this code reads {_FORMAT_VERSION}"
+        raise ProcessingError(msg)
+    try:
+        return PoseBank(poses=poses, source=source)
+    except ValidationError as exc:
+        msg = f"pose bank {path} is not a bank of poses ({exc})"
+        raise ProcessingError(msg) from exc
+
+
+def _templates(bank: PoseBank, headings: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Markers (P·H, 53, 3) float32 and DeMoCap joints (P·H, 19, 3) float64 of every bank pose
+    at every heading, on the reference body (placement ``p·H + h``)."""
+    ref = BodyShape.from_height(_BANK_HEIGHT_M)
+    ms = MarkerSet.for_shape(ref)
+    kin = forward_kinematics(bank.poses, ref)
+    ji = ms.joint_index
+    mk = kin.positions_m[:, ji] + (kin.rotations[:, ji] @ ms.offsets_m[..., None])[..., 0]
+    jt = democap_joints(kin)
+    psi = np.arange(headings) * (2.0 * np.pi / headings)
+    rz = Rotation.from_euler("z", psi[:, None]).as_matrix()
+    m = np.einsum("hab,pmb->phma", rz, mk).reshape(-1, mk.shape[1], 3)
+    j = np.einsum("hab,pmb->phma", rz, jt).reshape(-1, jt.shape[1], 3)
+    return torch.from_numpy(m).float(), torch.from_numpy(j)
+
+
+def _slide(
+    m: torch.Tensor, pts: torch.Tensor, t: torch.Tensor, steps: int, gate_m: float
+) -> torch.Tensor:
+    """Translation-only ICP: placements' markers (C, M, 3) moved by t (C, 3) onto pts (N, 3),
+    each step by the mean offset of the nearest pairs both ways within the gate."""
+    for _ in range(steps):
+        x = m + t[:, None]
+        d2 = torch.cdist(x, pts[None]).square_()  # (C, M, N)
+        dm, im = d2.min(2)
+        dp, ip = d2.min(1)
+        wm = (dm < gate_m**2).float()
+        wp = (dp < gate_m**2).float()
+        rm = pts[im] - x
+        rp = pts[None] - torch.gather(x, 1, ip[..., None].expand(-1, -1, 3))
+        num = (rm * wm[..., None]).sum(1) + (rp * wp[..., None]).sum(1)
+        t = t + num / (wm.sum(1) + wp.sum(1)).clamp(min=1.0)[:, None]
+        gate_m = max(gate_m * 0.7, 0.06)
+    return t
+
+
+def _score(m: torch.Tensor, pts: torch.Tensor, t: torch.Tensor, c: float) -> torch.Tensor:
+    """How badly each placement explains the cloud (C,): Geman–McClure of every marker's
+    nearest point plus every point's nearest marker, m²."""
+    d2 = torch.cdist(m + t[:, None], pts[None]).square_()
+    cc = c * c
+    dm, dp = d2.min(2).values, d2.min(1).values
+    return (cc * dm / (cc + dm)).sum(1) + (cc * dp / (cc + dp)).sum(1)
+
+
+def bank_starts(
+    clouds: Sequence[npt.ArrayLike],
+    heights_m: npt.ArrayLike,
+    bank: PoseBank,
+    *,
+    search: BankSearch | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """The bank's best placements on each cloud, as solve starts (module doc).
+
+    Args:
+        clouds: B fused clouds (N_i, 3), world, m.
+        heights_m: (B,) the body's estimated standing height per cloud (the bank is scaled
+            to it).
+        bank: the poses.
+        search: how (default :class:`BankSearch`).
+
+    Returns:
+        markers (S, B, 53, 3) and DeMoCap joints (S, B, 19, 3), world, m: the S = ``starts``
+        best placements of distinct poses per cloud, best first (fewer poses in the bank than
+        S: placements repeat).
+
+    Raises:
+        ValidationError: ``heights_m`` not one positive height per cloud, a cloud of the
+            wrong shape or with no point.
+    """
+    opt = search or BankSearch()
+    h = np.asarray(check_finite(check_shape(heights_m, [len(clouds)], name="heights_m")), float)
+    if (h <= 0).any():
+        msg = f"heights_m must be positive, got {h[h <= 0][:3]}"
+        raise ValidationError(msg)
+    tm, tj = _templates(bank, opt.headings)
+    n_start = opt.starts
+    out_m = np.empty((n_start, len(clouds), tm.shape[1], 3))
+    out_j = np.empty((n_start, len(clouds), tj.shape[1], 3))
+    for b, cloud in enumerate(clouds):
+        p = np.asarray(check_finite(check_shape(cloud, ["N", 3], name="cloud")), np.float32)
+        if len(p) == 0:
+            msg = f"cloud {b} has no point; the pose bank cannot place a body on it"
+            raise ValidationError(msg)
+        pts = torch.from_numpy(p)
+        s = float(h[b]) / _BANK_HEIGHT_M
+        m = tm * s
+        t = pts.mean(0) - m.mean(1)
+        # coarse: every placement on a subsample of the cloud; fine: the best on all of it
+        # evenly through the cloud: the same points whatever else is in the call
+        few = pts[np.linspace(0, len(pts) - 1, min(opt.subsample, len(pts))).round().astype(int)]
+        t = _slide(m, few, t, 3, opt.icp_gate_m)
+        best = torch.argsort(_score(m, few, t, opt.gate_m))[: opt.keep]
+        t_best = _slide(m[best], pts, t[best], 3, min(opt.icp_gate_m, 0.10))
+        order = torch.argsort(_score(m[best], pts, t_best, opt.gate_m)).tolist()
+        picked: list[int] = []
+        poses: set[int] = set()
+        for k in order:
+            pose = int(best[k]) // opt.headings
+            if pose not in poses:
+                poses.add(pose)
+                picked.append(k)
+            if len(picked) == n_start:
+                break
+        picked += [picked[-1]] * (n_start - len(picked))
+        for i, k in enumerate(picked):
+            c = int(best[k])
+            shift = t_best[k].double()
+            out_m[i, b] = (m[c].double() + shift).numpy()
+            out_j[i, b] = (s * tj[c] + shift).numpy()
+    return out_m, out_j
