@@ -467,7 +467,7 @@ class DemocapPredictor:
             opt = replace(self.solve_options, bend_starts_rad=())
             banked = solve_skeleton(sub, bm, bj, options=opt, views=sub_views)
             better = np.flatnonzero(banked.energy < sol.energy[poor])
-            sol.put(poor[better], _subset(banked, better))
+            sol.put(poor[better], banked, better)
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
         return [
@@ -511,21 +511,16 @@ class _Solved:
             np.full((n,), np.inf),
         )
 
-    def put(self, rows: npt.NDArray[np.intp], sol: SolveResult) -> None:
-        self.markers_m[rows] = sol.markers_m
-        self.joints_m[rows] = sol.joints_m
-        self.poses[rows] = sol.poses
-        self.height_m[rows] = sol.height_m
-        self.energy[rows] = sol.energy
-
-
-def _subset(sol: SolveResult, rows: npt.NDArray[np.intp]) -> SolveResult:
-    """The solve's results of frames ``rows``."""
-    return SolveResult(
-        markers_m=sol.markers_m[rows],
-        joints_m=sol.joints_m[rows],
-        poses=sol.poses[rows],
-        height_m=sol.height_m[rows],
-        energy=sol.energy[rows],
-        hypothesis=sol.hypothesis[rows],
-    )
+    def put(
+        self,
+        rows: npt.NDArray[np.intp],
+        sol: SolveResult,
+        src: npt.NDArray[np.intp] | None = None,
+    ) -> None:
+        """Fill ``rows`` from the solve's frames ``src`` (default: all of them, in order)."""
+        pick = slice(None) if src is None else src
+        self.markers_m[rows] = sol.markers_m[pick]
+        self.joints_m[rows] = sol.joints_m[pick]
+        self.poses[rows] = sol.poses[pick]
+        self.height_m[rows] = sol.height_m[pick]
+        self.energy[rows] = sol.energy[pick]

@@ -17,6 +17,7 @@ made by ``mocaprig democap pose-bank --corpus DIR``.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -34,6 +35,7 @@ from mocaprig.process.body.kinematics import democap_joints, forward_kinematics
 from mocaprig.process.body.markers import MarkerSet
 from mocaprig.process.body.shape import BodyShape
 from mocaprig.process.body.skeleton import POSE_DIM
+from mocaprig.process.democap.solve import REFERENCE_HEIGHT_M
 from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = [
@@ -52,8 +54,9 @@ FloatArray = npt.NDArray[np.float64]
 
 #: The committed bank (module doc).
 DEFAULT_POSE_BANK = Path(__file__).resolve().parent / "data" / "pose_bank.npz"
-#: Height of the body the bank's poses are stored on (m); starts are scaled from it.
-_BANK_HEIGHT_M = 1.75
+#: Height of the body the bank's poses are stored on (m; the solve's reference body); starts
+#: are scaled from it.
+_BANK_HEIGHT_M = REFERENCE_HEIGHT_M
 _FORMAT_VERSION = 1
 
 
@@ -228,10 +231,17 @@ def load_pose_bank(path: Path | None = None) -> PoseBank:
 
 def _templates(bank: PoseBank, headings: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Markers (P·H, 53, 3) float32 and DeMoCap joints (P·H, 19, 3) float64 of every bank pose
-    at every heading, on the reference body (placement ``p·H + h``)."""
+    at every heading, on the reference body (placement ``p·H + h``); made once per bank and
+    heading count, not per call (the live solve calls once a frame)."""
+    poses = np.ascontiguousarray(bank.poses, np.float64)
+    return _templates_of(poses.tobytes(), poses.shape[0], headings)
+
+
+@functools.lru_cache(maxsize=4)
+def _templates_of(poses: bytes, count: int, headings: int) -> tuple[torch.Tensor, torch.Tensor]:
     ref = BodyShape.from_height(_BANK_HEIGHT_M)
     ms = MarkerSet.for_shape(ref)
-    kin = forward_kinematics(bank.poses, ref)
+    kin = forward_kinematics(np.frombuffer(poses, np.float64).reshape(count, POSE_DIM), ref)
     ji = ms.joint_index
     mk = kin.positions_m[:, ji] + (kin.rotations[:, ji] @ ms.offsets_m[..., None])[..., 0]
     jt = democap_joints(kin)
