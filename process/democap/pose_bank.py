@@ -91,7 +91,9 @@ class BankSearch:
     Attributes:
         headings: headings tried per pose, evenly round the vertical.
         starts: starts returned per cloud, each of a different bank pose.
-        keep: placements (pose, heading) that go on from the coarse round to the fine one.
+        screen: placements (pose, heading) that go on to the coarse round: the best by
+            the score at ``screen_gate_m`` with the centroids of cloud and placement met.
+        keep: placements that go on from the coarse round to the fine one.
         subsample: points of the cloud used in the coarse round (all in the fine one).
         gate_m: the score's gate ``c`` (Geman–McClure, as the solve's energy).
         icp_gate_m: pairs farther apart than this do not move a placement (first round;
@@ -104,6 +106,8 @@ class BankSearch:
 
     headings: int = 12
     starts: int = 3
+    screen: int = 512
+    screen_gate_m: float = 0.15
     keep: int = 128
     subsample: int = 96
     gate_m: float = 0.05
@@ -111,12 +115,13 @@ class BankSearch:
     energy_per_point: float = 0.6
 
     def __post_init__(self) -> None:
-        for name in ("headings", "starts", "keep", "subsample"):
+        for name in ("headings", "starts", "screen", "keep", "subsample"):
             if int(getattr(self, name)) < 1:
                 msg = f"BankSearch.{name} must be >= 1, got {getattr(self, name)}"
                 raise ValidationError(msg)
         check_positive(self.gate_m, name="BankSearch.gate_m")
         check_positive(self.icp_gate_m, name="BankSearch.icp_gate_m")
+        check_positive(self.screen_gate_m, name="BankSearch.screen_gate_m")
         if not self.energy_per_point >= 0.0:
             msg = f"BankSearch.energy_per_point must be >= 0, got {self.energy_per_point}"
             raise ValidationError(msg)
@@ -252,33 +257,69 @@ def _templates_of(poses: bytes, count: int, headings: int) -> tuple[torch.Tensor
     return torch.from_numpy(m).float(), torch.from_numpy(j)
 
 
-def _slide(
-    m: torch.Tensor, pts: torch.Tensor, t: torch.Tensor, steps: int, gate_m: float
-) -> torch.Tensor:
-    """Translation-only ICP: placements' markers (C, M, 3) moved by t (C, 3) onto pts (N, 3),
-    each step by the mean offset of the nearest pairs both ways within the gate."""
-    for _ in range(steps):
-        x = m + t[:, None]
-        d2 = torch.cdist(x, pts[None]).square_()  # (C, M, N)
-        dm, im = d2.min(2)
-        dp, ip = d2.min(1)
-        wm = (dm < gate_m**2).float()
-        wp = (dp < gate_m**2).float()
-        rm = pts[im] - x
-        rp = pts[None] - torch.gather(x, 1, ip[..., None].expand(-1, -1, 3))
-        num = (rm * wm[..., None]).sum(1) + (rp * wp[..., None]).sum(1)
-        t = t + num / (wm.sum(1) + wp.sum(1)).clamp(min=1.0)[:, None]
-        gate_m = max(gate_m * 0.7, 0.06)
-    return t
+_CHUNK = 256
+
+
+def _d2(x: torch.Tensor, pts: torch.Tensor, pn: torch.Tensor) -> torch.Tensor:
+    """Squared distances (C, M, N) of markers x (C, M, 3) to points pts (N, 3) with squared
+    norms pn (N,): one matrix product, no square root (torch.cdist takes one)."""
+    c, m, _ = x.shape
+    d2 = torch.addmm(pn, x.reshape(c * m, 3), pts.T, alpha=-2.0).view(c, m, -1)
+    return d2.add_(x.square().sum(2, keepdim=True)).clamp_(min=0.0)
+
+
+def _badness(d2: torch.Tensor, c: float) -> torch.Tensor:
+    """How badly each placement explains the cloud (C,) from its distances (C, M, N): the
+    Geman–McClure (gate ``c``) of every marker's nearest point plus every point's nearest
+    marker, m²."""
+    cc = c * c
+    dm, dp = d2.amin(2), d2.amin(1)
+    return (cc * dm / (cc + dm)).sum(1) + (cc * dp / (cc + dp)).sum(1)
 
 
 def _score(m: torch.Tensor, pts: torch.Tensor, t: torch.Tensor, c: float) -> torch.Tensor:
-    """How badly each placement explains the cloud (C,): Geman–McClure of every marker's
-    nearest point plus every point's nearest marker, m²."""
-    d2 = torch.cdist(m + t[:, None], pts[None]).square_()
-    cc = c * c
-    dm, dp = d2.min(2).values, d2.min(1).values
-    return (cc * dm / (cc + dm)).sum(1) + (cc * dp / (cc + dp)).sum(1)
+    """:func:`_badness` of placements' markers (C, M, 3) moved by t (C, 3) on pts (N, 3),
+    in chunks of placements whose distances stay in the cache."""
+    pn = pts.square().sum(1)
+    out = torch.empty(len(t), dtype=pts.dtype)
+    for lo in range(0, len(t), _CHUNK):
+        x = m[lo : lo + _CHUNK] + t[lo : lo + _CHUNK, None]
+        out[lo : lo + _CHUNK] = _badness(_d2(x, pts, pn), c)
+    return out
+
+
+def _slide(
+    m: torch.Tensor, pts: torch.Tensor, t: torch.Tensor, steps: int, gate_m: float, c: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Translation-only ICP of placements' markers (C, M, 3), moved by t (C, 3), onto pts
+    (N, 3): each step by the mean offset of the nearest pairs both ways within the gate
+    (shrinking by 0.7 a step to 0.06 m) -> the translations and :func:`_badness` (gate
+    ``c``) after them. In chunks of placements."""
+    pn = pts.square().sum(1)
+    t_out = torch.empty_like(t)
+    score = torch.empty(len(t), dtype=pts.dtype)
+    for lo in range(0, len(t), _CHUNK):
+        mc, tc = m[lo : lo + _CHUNK], t[lo : lo + _CHUNK]
+        gate = gate_m
+        for _ in range(steps):
+            x = mc + tc[:, None]
+            d2 = _d2(x, pts, pn)
+            # numpy's argmin: several times torch's min-with-indices on these shapes
+            a = d2.numpy()
+            im = torch.from_numpy(a.argmin(2))
+            ip = torch.from_numpy(a.argmin(1))
+            dm = torch.gather(d2, 2, im[..., None])[..., 0]
+            dp = torch.gather(d2, 1, ip[:, None])[:, 0]
+            wm = (dm < gate**2).to(x.dtype)
+            wp = (dp < gate**2).to(x.dtype)
+            rm = pts[im] - x
+            rp = pts[None] - torch.gather(x, 1, ip[..., None].expand(-1, -1, 3))
+            num = (rm * wm[..., None]).sum(1) + (rp * wp[..., None]).sum(1)
+            tc = tc + num / (wm.sum(1) + wp.sum(1)).clamp(min=1.0)[:, None]
+            gate = max(gate * 0.7, 0.06)
+        score[lo : lo + _CHUNK] = _badness(_d2(mc + tc[:, None], pts, pn), c)
+        t_out[lo : lo + _CHUNK] = tc
+    return t_out, score
 
 
 def bank_starts(
@@ -324,13 +365,18 @@ def bank_starts(
         s = float(h[b]) / _BANK_HEIGHT_M
         m = tm * s
         t = pts.mean(0) - m.mean(1)
-        # coarse: every placement on a subsample of the cloud; fine: the best on all of it
-        # evenly through the cloud: the same points whatever else is in the call
+        # screen: every placement where the centroids meet, scored on a subsample of the
+        # cloud taken evenly through it (the same points whatever else is in the call) at a
+        # wide gate; coarse: the best ``screen`` slid onto the subsample; fine: the best
+        # ``keep`` of those slid onto the whole cloud.
         few = pts[np.linspace(0, len(pts) - 1, min(opt.subsample, len(pts))).round().astype(int)]
-        t = _slide(m, few, t, 3, opt.icp_gate_m)
-        best = torch.argsort(_score(m, few, t, opt.gate_m))[: opt.keep]
-        t_best = _slide(m[best], pts, t[best], 3, min(opt.icp_gate_m, 0.10))
-        order = torch.argsort(_score(m[best], pts, t_best, opt.gate_m)).tolist()
+        go = torch.argsort(_score(m, few, t, opt.screen_gate_m))[: opt.screen]
+        t_go, sc = _slide(m[go], few, t[go], 3, opt.icp_gate_m, opt.gate_m)
+        top = torch.argsort(sc)[: opt.keep]
+        best = go[top]
+        fine_gate = min(opt.icp_gate_m, 0.10)
+        t_best, sc = _slide(m[best], pts, t_go[top], 3, fine_gate, opt.gate_m)
+        order = torch.argsort(sc).tolist()
         picked: list[int] = []
         poses: set[int] = set()
         for k in order:
