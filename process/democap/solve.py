@@ -555,6 +555,13 @@ def _nearest(
     return d_m, nn_m, d_c, nn_c
 
 
+def _nearest_d2(q: _Posed, data: _Data) -> tuple[torch.Tensor, torch.Tensor]:
+    """Squared distances of :func:`_nearest` without the indices (P, 53) and (P, N): ``amin``,
+    about half the time of torch's min-with-indices on these shapes."""
+    d = torch.cdist(q.markers, data.cloud)
+    return d.amin(dim=2).square_(), d.amin(dim=1).square_()
+
+
 @dataclass(frozen=True, slots=True)
 class _Weights:
     """Which terms a run uses and how (the init stage: network only, no gate)."""
@@ -755,9 +762,9 @@ def _standing_height_m(z: torch.Tensor) -> FloatArray:
 
 def _selection_energy(q: _Posed, data: _Data, c: float) -> torch.Tensor:
     """The data terms at gate ``c``, unscaled (P,): how well each solution explains its cloud."""
-    d_m, _, d_c, _ = _nearest(q, data)
-    e_m, _ = _gm(d_m**2, c)
-    e_c, _ = _gm(d_c**2, c)
+    d2_m, d2_c = _nearest_d2(q, data)
+    e_m, _ = _gm(d2_m, c)
+    e_c, _ = _gm(d2_c, c)
     return ((e_m * data.seen(q.markers)).sum(1) + (e_c * data.mask).sum(1)) / (c * c)
 
 
@@ -894,9 +901,10 @@ def _limb_energies(
         cloud, mask = part.cloud, part.mask
         d = torch.cdist(moving.reshape(p, -1, 3), cloud).reshape(p, n_c, -1, cloud.shape[1])
         # each point's nearest marker: the held markers' (the same for every candidate)
-        held = torch.cdist(q0.markers[:, ~limb.markers], cloud).min(dim=1).values  # (p, N)
-        d_c = torch.minimum(d.min(dim=2).values, held[:, None])
-        e_m, _ = _gm(d.min(dim=3).values ** 2, c)
+        # (amin: torch's min-with-indices takes about twice as long)
+        held = torch.cdist(q0.markers[:, ~limb.markers], cloud).amin(dim=1)  # (p, N)
+        d_c = torch.minimum(d.amin(dim=2), held[:, None])
+        e_m, _ = _gm(d.amin(dim=3) ** 2, c)
         e_c, _ = _gm(d_c**2, c)
         out[lo:hi] = (e_m * part.seen(moving)).sum(2) + (e_c * mask[:, None]).sum(2)
     return out
