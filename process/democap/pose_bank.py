@@ -93,6 +93,7 @@ class BankSearch:
         starts: starts returned per cloud, each of a different bank pose.
         screen: placements (pose, heading) that go on to the coarse round: the best by
             the score at ``screen_gate_m`` with the centroids of cloud and placement met.
+        screen_gate_m: the screen's gate (wide: the centroids meet only roughly).
         keep: placements that go on from the coarse round to the fine one.
         subsample: points of the cloud used in the coarse round (all in the fine one).
         gate_m: the score's gate ``c`` (Geman–McClure, as the solve's energy).

@@ -119,6 +119,28 @@ def test_the_search_places_a_bank_pose_where_its_cloud_is() -> None:
     assert np.linalg.norm(sm[0, 0] - mk, axis=-1).mean() < 0.01
 
 
+def test_the_screen_keeps_the_placement_that_sliding_every_one_finds() -> None:
+    bank = load_pose_bank()
+    rng = np.random.default_rng(9)
+    clouds, truth = [], []
+    for k, yaw in ((17, 40.0), (101, 200.0), (230, 310.0)):
+        mk, jt = _placed(bank.poses[k], height_m=1.8, yaw_deg=yaw, shift_m=np.array([0.2, 0.5, 0]))
+        seen = rng.random(len(mk)) < 0.7
+        # a few projector-dot strays about the body
+        strays = mk.mean(0) + rng.uniform(-0.8, 0.8, (5, 3))
+        clouds.append(
+            np.concatenate([mk[seen] + rng.normal(0.0, 0.004, (int(seen.sum()), 3)), strays])
+        )
+        truth.append(jt)
+    every = len(bank) * BankSearch().headings
+    _, full = bank_starts(clouds, [1.8] * 3, bank, search=BankSearch(screen=every))
+    _, screened = bank_starts(clouds, [1.8] * 3, bank)
+    for b in range(3):
+        # the yaws are 10 degrees off the search's 30-degree headings: a few cm at the limbs
+        assert np.linalg.norm(full[0, b] - truth[b], axis=-1).mean() < 0.08
+        assert np.linalg.norm(screened[0, b] - full[0, b], axis=-1).mean() < 0.005
+
+
 def test_the_search_refuses_heights_that_do_not_match_the_clouds() -> None:
     bank = load_pose_bank()
     cloud = np.zeros((10, 3))
