@@ -6,7 +6,8 @@ go through the committed ``lite`` network (the 3-turn ensemble, as shipped) and 
 the default starts (the ensemble's and each turn's, and each of them bent at the hips: 8) with
 and without the limb search after them, and configurations in between; then the predictor's
 whole solve stage (:class:`DemocapPredictor`: six turns for a sparse cloud) without and with
-the pose bank's second solve (the default: :mod:`mocaprig.process.democap.pose_bank`), its
+the pose bank's second solve (:mod:`mocaprig.process.democap.pose_bank`), and with the
+re-solve from its own solution after it (the default: ``DemocapPredictor.resolve_rounds``), its
 time read from ``last_timings_s["solve_s"]`` (the network's passes left out); each is timed in
 rounds that interleave them (a shared machine: a load change hits all alike), as seconds
 per frame and as a ratio to the network's time in the same round, with its MPJPE against
@@ -86,7 +87,8 @@ def main() -> int:
     }
     predictors = {
         "predictor solve stage, no pose bank": DemocapPredictor(pose_bank=False),
-        "predictor solve stage + pose bank (default)": DemocapPredictor(),
+        "predictor solve stage + pose bank, no re-solve": DemocapPredictor(resolve_rounds=0),
+        "predictor solve stage + pose bank + re-solve (default)": DemocapPredictor(),
     }
     rows: dict[str, list[float]] = {c: [] for c in [*configs, *predictors]}
     net_s: list[float] = []

@@ -354,6 +354,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         help="with --solve: start it from the network's estimates only, not also from the "
         "committed bank of real poses",
     )
+    _add_resolve_option(lv)
     add_json_flag(lv)
     lv.set_defaults(func=democap_live)
 
@@ -438,6 +439,18 @@ def _add_inference_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the solve starts from the network's estimates only, not also from the committed "
         "bank of real poses (faster; worse where the network is far off)",
+    )
+    _add_resolve_option(parser)
+
+
+def _add_resolve_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--resolve-rounds",
+        type=int,
+        default=2,
+        metavar="N",
+        help="with the solve: a cloud still explained poorly is solved again from its own "
+        "solution, up to N times (default: %(default)s; 0 = never)",
     )
 
 
@@ -632,6 +645,7 @@ def democap_eval(args: argparse.Namespace) -> int:
         rotations=args.rotations,
         solve=not args.no_solve,
         pose_bank=not args.no_pose_bank,
+        resolve_rounds=args.resolve_rounds,
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)
@@ -712,6 +726,8 @@ def democap_eval(args: argparse.Namespace) -> int:
         "sparse_points": predictor.sparse_points,
         # poses in the bank the solve also starts from (None: the network's starts only)
         "pose_bank_poses": None if predictor.pose_bank is None else len(predictor.pose_bank),
+        # rounds of the re-solve from the solve's own solution (0: never)
+        "resolve_rounds": predictor.resolve_rounds if predictor.solves else 0,
         "seed": args.seed,
         "corpus": None if corpus is None else str(corpus),
         "trained_corpus_clips": sorted(predictor.checkpoint.train_motions),
@@ -796,6 +812,7 @@ def democap_run(args: argparse.Namespace) -> int:
             rotations=args.rotations,
             solve=not args.no_solve,
             pose_bank=not args.no_pose_bank,
+            resolve_rounds=args.resolve_rounds,
         ),
         every=args.every,
         overwrite=args.overwrite,
@@ -864,6 +881,7 @@ def democap_live(args: argparse.Namespace) -> int:
         rotations=args.rotations,
         solve=args.solve,
         pose_bank=not args.no_pose_bank,
+        resolve_rounds=args.resolve_rounds,
         workers=args.rotations,
     )
     if args.mock and args.seconds > args.world_seconds:

@@ -249,7 +249,9 @@ def test_the_pose_bank_finds_a_body_the_network_is_far_from(tiny_config: Democap
     truth = democap_joints(kin)[0]
     ck = _checkpoint(tiny_config)
     (with_bank,) = DemocapPredictor(ck, rotations=1).predict_many([cloud])
-    (without,) = DemocapPredictor(ck, rotations=1, pose_bank=False).predict_many([cloud])
+    (without,) = DemocapPredictor(ck, rotations=1, pose_bank=False, resolve_rounds=0).predict_many(
+        [cloud]
+    )
     assert np.linalg.norm(with_bank.joints_m - truth, axis=-1).mean() < 0.03
     assert np.linalg.norm(without.joints_m - truth, axis=-1).mean() > 0.06
     # a cloud explained well enough by the first solve is not searched
@@ -257,3 +259,49 @@ def test_the_pose_bank_finds_a_body_the_network_is_far_from(tiny_config: Democap
     (left,) = DemocapPredictor(ck, rotations=1, bank_search=never).predict_many([cloud])
     np.testing.assert_array_equal(left.joints_m, without.joints_m)
     assert DemocapPredictor(ck, solve=False).pose_bank is None
+
+
+def test_a_poorly_explained_cloud_is_solved_again_from_its_own_solution(
+    tiny_config: DemocapConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each round starts from (and is held to) the solution so far, and replaces it only
+    where it explains the cloud better; a cloud explained well is not solved again."""
+    from mocaprig.process.democap.pose_bank import BankSearch
+    from mocaprig.process.democap.solve import SolveResult, solve_skeleton
+
+    calls: list[tuple[np.ndarray, SolveResult]] = []
+
+    def spy(*args: object, **kwargs: object) -> SolveResult:
+        out = solve_skeleton(*args, **kwargs)  # type: ignore[arg-type]
+        calls.append((np.asarray(args[1]), out))
+        return out
+
+    monkeypatch.setattr("mocaprig.process.democap.infer.solve_skeleton", spy)
+    ck = _checkpoint(tiny_config)  # untrained: its starts explain the cloud poorly
+    cloud = _cloud()
+    (once,) = DemocapPredictor(ck, rotations=1, pose_bank=False, resolve_rounds=0).predict_many(
+        [cloud]
+    )
+    assert len(calls) == 1
+    first = calls[0][1]
+    np.testing.assert_allclose(once.joints_m, first.joints_m[0])
+    calls.clear()
+    pred = DemocapPredictor(ck, rotations=1, pose_bank=False, resolve_rounds=3)
+    (again,) = pred.predict_many([cloud])
+    assert 2 <= len(calls) <= 4
+    assert "resolve_s" in pred.last_timings_s
+    kept = calls[0][1]
+    for k, (start, out) in enumerate(calls[1:]):
+        np.testing.assert_allclose(start, kept.markers_m[None])  # from the solution so far
+        improved = out.energy[0] < kept.energy[0]
+        # a round that improves nothing is the last: the next would start from the same
+        assert improved or k == len(calls) - 2
+        kept = out if improved else kept
+    np.testing.assert_allclose(again.joints_m, kept.joints_m[0])
+    assert kept.energy[0] <= first.energy[0]
+    calls.clear()
+    never = BankSearch(energy_per_point=1.0e9)
+    DemocapPredictor(ck, rotations=1, bank_search=never, resolve_rounds=2).predict_many([cloud])
+    assert len(calls) == 1
+    with pytest.raises(ValidationError, match="resolve_rounds"):
+        DemocapPredictor(ck, resolve_rounds=-1)
