@@ -68,7 +68,7 @@ from mocaprig.calib.markers import (
 from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
 from mocaprig.process.democap.checkpoint import Checkpoint
 from mocaprig.process.democap.infer import DemocapPredictor, Prediction
-from mocaprig.process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Camera
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
@@ -135,8 +135,14 @@ class CloudPredictor(Protocol):
     is one); an attribute ``last_timings_s`` (stage -> s), when present, is read after each
     call."""
 
-    def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
-        """Fused world clouds ``(N, 3)`` (m) -> one :class:`Prediction` each."""
+    def predict_many(
+        self,
+        clouds: Sequence[npt.ArrayLike],
+        *,
+        views: Sequence[Sequence[Camera]] | None = None,
+    ) -> list[Prediction]:
+        """Fused world clouds ``(N, 3)`` (m) -> one :class:`Prediction` each; ``views``: per
+        cloud, the cameras whose frames made it (what the rig can see)."""
         ...
 
 
@@ -221,6 +227,22 @@ class LiveCamera:
         object.__setattr__(self, "depth_scale_m", scale)
         object.__setattr__(self, "width", w)
         object.__setattr__(self, "height", h)
+
+    def view(self) -> Camera:
+        """What this camera sees, as the skeleton solve takes a view of the rig: the
+        calibrated pose, the mean of K's focal lengths (the D415's rectified images have
+        square pixels), K's principal point and the image size (twice the principal point
+        where the size is any)."""
+        k, t = self.K, self.T_world_cam
+        cx, cy = float(k[0, 2]), float(k[1, 2])
+        size = (self.width, self.height) if self.width else (round(2 * cx), round(2 * cy))
+        return Camera(
+            centre_m=t[:3, 3].copy(),
+            r_cw=t[:3, :3].T.copy(),
+            focal_px=float(k[0, 0] + k[1, 1]) / 2.0,
+            principal_px=(cx, cy),
+            size_px=size,
+        )
 
     @classmethod
     def from_calibration(
@@ -409,6 +431,7 @@ class LivePipeline:
             self._box = box
         self.predictor = predictor
         self.cameras = cams
+        self._views = tuple(c.view() for c in cams)
         self.workers = workers
         self.queue_size = queue_size
         self.merge_radius_m = float(merge_radius_m)
@@ -599,7 +622,9 @@ class LivePipeline:
         pred: Prediction | None = None
         t0 = time.perf_counter()
         if m.cloud_m.shape[0] >= self.min_points:
-            pred = self.predictor.predict_many([m.cloud_m])[0]
+            # the cameras that fed the cloud: a body part no one of them sees is not missing
+            seen_by = [v for v, mf in zip(self._views, m.markers, strict=True) if mf is not None]
+            pred = self.predictor.predict_many([m.cloud_m], views=[seen_by])[0]
             stages = getattr(self.predictor, "last_timings_s", None)
             if isinstance(stages, Mapping):
                 for k, v in stages.items():

@@ -242,17 +242,22 @@ NOMINAL_OBSERVATION = ObservationModel()
 
 @dataclass(frozen=True, slots=True)
 class Camera:
-    """One D415 depth viewpoint.
+    """One D415 depth viewpoint: a pinhole of square pixels (the D415's rectified IR/depth).
 
     Attributes:
         centre_m: optical centre (3,), world, m.
         r_cw: rotation world -> camera (3, 3); camera +Z forward, +X right, +Y down.
-        focal_px: focal length (px), square pixels, principal point at the image centre.
+        focal_px: focal length (px).
+        principal_px: principal point ``(cx, cy)`` (px); the simulated rig's is the image
+            centre.
+        size_px: image ``(width, height)`` (px); the simulated rig's is 848 × 480.
     """
 
     centre_m: FloatArray
     r_cw: FloatArray
     focal_px: float
+    principal_px: tuple[float, float] = (IMAGE_W / 2, IMAGE_H / 2)
+    size_px: tuple[int, int] = (IMAGE_W, IMAGE_H)
 
 
 def _look_at(centre: FloatArray, target: FloatArray) -> FloatArray:
@@ -299,29 +304,50 @@ def in_frustum(points_m: FloatArray, cams: list[Camera]) -> BoolArray:
     """(K cameras, P points) booleans: the point projects into the camera's image (with the
     :data:`IMAGE_MARGIN_PX` margin) at 0.3–6 m, whatever is in the way."""
     p = np.asarray(points_m, np.float64).reshape(1, -1, 3)
-    centre = np.array([[c.centre_m for c in cams]], np.float64).reshape(1, len(cams), 3)
-    r_cw = np.array([[c.r_cw for c in cams]], np.float64).reshape(1, len(cams), 3, 3)
-    focal = np.array([[c.focal_px for c in cams]], np.float64).reshape(1, len(cams))
-    seen = in_frustum_torch(*(torch.from_numpy(a) for a in (p, centre, r_cw, focal)))
+    k = len(cams)
+    centre = np.array([[c.centre_m for c in cams]], np.float64).reshape(1, k, 3)
+    r_cw = np.array([[c.r_cw for c in cams]], np.float64).reshape(1, k, 3, 3)
+    focal = np.array([[c.focal_px for c in cams]], np.float64).reshape(1, k)
+    principal = np.array([[c.principal_px for c in cams]], np.float64).reshape(1, k, 2)
+    size = np.array([[c.size_px for c in cams]], np.float64).reshape(1, k, 2)
+    seen = in_frustum_torch(
+        *(torch.from_numpy(a) for a in (p, centre, r_cw, focal)),
+        principal_px=torch.from_numpy(principal),
+        size_px=torch.from_numpy(size),
+    )
     return np.asarray(seen[0].numpy().T)
 
 
 def in_frustum_torch(
-    points_m: torch.Tensor, centre_m: torch.Tensor, r_cw: torch.Tensor, focal_px: torch.Tensor
+    points_m: torch.Tensor,
+    centre_m: torch.Tensor,
+    r_cw: torch.Tensor,
+    focal_px: torch.Tensor,
+    *,
+    principal_px: torch.Tensor | None = None,
+    size_px: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """:func:`in_frustum` for B problems at once, each with its own rig: points (B, M, 3),
-    the cameras' centres (B, K, 3), world -> camera rotations (B, K, 3, 3) and focal lengths
-    (B, K) -> (B, M, K) booleans. A camera of focal 0 (padding a smaller rig) sees nothing."""
+    the cameras' centres (B, K, 3), world -> camera rotations (B, K, 3, 3), focal lengths
+    (B, K), principal points (B, K, 2) and image sizes (B, K, 2) (px; None: the simulated
+    rig's) -> (B, M, K) booleans. A camera of focal 0 (padding a smaller rig) sees nothing."""
     rel = points_m[:, :, None] - centre_m[:, None]  # (B, M, K, 3)
     pc = (r_cw[:, None] @ rel[..., None])[..., 0]
     z = pc[..., 2]
     zs = torch.where(z > 1e-6, z, torch.ones_like(z))
     f = focal_px[:, None]
-    u = f * pc[..., 0] / zs + IMAGE_W / 2
-    v = f * pc[..., 1] / zs + IMAGE_H / 2
+    size = (
+        torch.tensor([IMAGE_W, IMAGE_H], dtype=pc.dtype).expand(*focal_px.shape, 2)
+        if size_px is None
+        else size_px
+    )[:, None]
+    c = size / 2 if principal_px is None else principal_px[:, None]
+    u = f * pc[..., 0] / zs + c[..., 0]
+    v = f * pc[..., 1] / zs + c[..., 1]
     mg = IMAGE_MARGIN_PX
     ok = (f > 0) & (z > RANGE_M[0]) & ((rel * rel).sum(-1) < RANGE_M[1] ** 2)
-    return ok & (u > mg) & (u < IMAGE_W - mg) & (v > mg) & (v < IMAGE_H - mg)
+    inside_u = (u > mg) & (u < size[..., 0] - mg)
+    return ok & inside_u & (v > mg) & (v < size[..., 1] - mg)
 
 
 @dataclass(frozen=True, slots=True)
@@ -401,17 +427,18 @@ def _sight(
     Collision Detection §5.1.9).
     """
     f = cam.focal_px
+    (cx, cy), (w, h) = cam.principal_px, cam.size_px
     rel = points - cam.centre_m  # d1, (P, 3)
     pc = rel @ cam.r_cw.T
     z = pc[:, 2]
     zs = np.where(z > 1e-6, z, 1.0)
-    uv = np.stack([f * pc[:, 0] / zs + IMAGE_W / 2, f * pc[:, 1] / zs + IMAGE_H / 2], axis=1)
+    uv = np.stack([f * pc[:, 0] / zs + cx, f * pc[:, 1] / zs + cy], axis=1)
     n = points.shape[0]
     dist2 = np.einsum("ij,ij->i", rel, rel)
     mg = IMAGE_MARGIN_PX
     inside = (z > RANGE_M[0]) & (dist2 < RANGE_M[1] ** 2)
-    inside &= (uv[:, 0] > mg) & (uv[:, 0] < IMAGE_W - mg)
-    inside &= (uv[:, 1] > mg) & (uv[:, 1] < IMAGE_H - mg)
+    inside &= (uv[:, 0] > mg) & (uv[:, 0] < w - mg)
+    inside &= (uv[:, 1] > mg) & (uv[:, 1] < h - mg)
     if caps_r.size == 0 or n == 0:
         return _Sight(z, uv, inside, np.full(n, 10.0), np.zeros((n, 2)), np.full(n, np.inf))
     ax = caps_b - caps_a  # d2, (C, 3)
@@ -525,8 +552,8 @@ def _cross(u: FloatArray, v: FloatArray) -> FloatArray:
 
 
 def _lift(uv: FloatArray, z: FloatArray, cam: Camera) -> FloatArray:
-    f = cam.focal_px
-    pc = np.stack([(uv[:, 0] - IMAGE_W / 2) / f * z, (uv[:, 1] - IMAGE_H / 2) / f * z, z], axis=1)
+    f, (cx, cy) = cam.focal_px, cam.principal_px
+    pc = np.stack([(uv[:, 0] - cx) / f * z, (uv[:, 1] - cy) / f * z, z], axis=1)
     return np.asarray(pc @ cam.r_cw + cam.centre_m)
 
 

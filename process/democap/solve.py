@@ -520,28 +520,42 @@ class _Views:
     centre: torch.Tensor  # (P, K, 3) world, m
     r_cw: torch.Tensor  # (P, K, 3, 3) world -> camera
     focal: torch.Tensor  # (P, K) px; 0 for a padded camera
+    principal: torch.Tensor  # (P, K, 2) px
+    size: torch.Tensor  # (P, K, 2) image width, height, px
 
     @staticmethod
     def of(views: Sequence[Sequence[Camera]]) -> _Views:
         p_n, k = len(views), max((len(v) for v in views), default=0)
         c, r, f = np.zeros((p_n, k, 3)), np.tile(np.eye(3), (p_n, k, 1, 1)), np.zeros((p_n, k))
+        pp, wh = np.zeros((p_n, k, 2)), np.zeros((p_n, k, 2))
         for i, v in enumerate(views):
             for j, cam in enumerate(v):
                 c[i, j], r[i, j], f[i, j] = cam.centre_m, cam.r_cw, cam.focal_px
-        return _Views(torch.from_numpy(c), torch.from_numpy(r), torch.from_numpy(f))
+                pp[i, j], wh[i, j] = cam.principal_px, cam.size_px
+        return _Views(*(torch.from_numpy(a) for a in (c, r, f, pp, wh)))
 
     def rows(self, lo: int, hi: int) -> _Views:
-        return _Views(self.centre[lo:hi], self.r_cw[lo:hi], self.focal[lo:hi])
+        return _Views(*(getattr(self, n)[lo:hi] for n in _VIEW_FIELDS))
 
     def take(self, idx: npt.NDArray[np.intp]) -> _Views:
         i = torch.from_numpy(np.asarray(idx, np.int64))
-        return _Views(self.centre[i], self.r_cw[i], self.focal[i])
+        return _Views(*(getattr(self, n)[i] for n in _VIEW_FIELDS))
 
     def seen(self, pts: torch.Tensor) -> torch.Tensor:
         """1.0 where a point (P, ..., 3) lies in some camera's view of its problem (P, ...)."""
         shape = pts.shape
-        inside = in_frustum_torch(pts.reshape(shape[0], -1, 3), self.centre, self.r_cw, self.focal)
+        inside = in_frustum_torch(
+            pts.reshape(shape[0], -1, 3),
+            self.centre,
+            self.r_cw,
+            self.focal,
+            principal_px=self.principal,
+            size_px=self.size,
+        )
         return inside.any(-1).to(pts.dtype).reshape(shape[:-1])
+
+
+_VIEW_FIELDS = ("centre", "r_cw", "focal", "principal", "size")
 
 
 def _nearest(

@@ -33,7 +33,7 @@ from mocaprig.process.democap.live import (
     live_predictor,
 )
 from mocaprig.process.democap.model import DemocapNet
-from mocaprig.process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M, in_frustum
 
 F64 = npt.NDArray[np.float64]
 W, H = 240, 180
@@ -195,6 +195,50 @@ def test_cameras_by_name_missing_frame_and_empty_cloud(predictor: DemocapPredict
         assert nothing.cameras_used == 0
 
 
+def test_a_live_cameras_view_is_what_its_image_shows() -> None:
+    cam = _cameras(1)[0]
+    view = cam.view()
+    np.testing.assert_allclose(view.centre_m, cam.T_world_cam[:3, 3])
+    pts = np.random.default_rng(3).uniform([-3.0, -3.0, -1.0], [3.0, 3.0, 3.0], (500, 3))
+    t_cw = np.linalg.inv(cam.T_world_cam)
+    p = pts @ t_cw[:3, :3].T + t_cw[:3, 3]
+    z = np.where(p[:, 2] > 0, p[:, 2], 1.0)
+    u, v = K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]
+    # the image with the view test's 2 px margin, 0.3-6 m
+    near = np.linalg.norm(p, axis=1) < 6.0
+    want = near & (p[:, 2] > 0.3) & (u > 2) & (u < W - 2) & (v > 2) & (v < H - 2)
+    assert 0.05 < want.mean() < 0.95  # the test has both
+    np.testing.assert_array_equal(in_frustum(pts, [view])[0], want)
+
+
+def test_the_predictor_is_told_which_cameras_made_the_cloud(
+    predictor: DemocapPredictor,
+) -> None:
+    cams = _cameras()
+    frames = _frame_set(cams, seed=2)
+    told: list[object] = []
+
+    class Spy:
+        def predict_many(
+            self, clouds: Sequence[npt.ArrayLike], *, views: object = None
+        ) -> list[Prediction]:
+            told.append(views)
+            return predictor.predict_many(clouds)
+
+    with LivePipeline(Spy(), cams) as pipe:
+        pipe.process(frames)
+        pipe.process([frames[0], None, frames[2]])
+    full, dropped = told
+
+    def centres(views: object) -> list[list[float]]:
+        assert isinstance(views, list)
+        assert len(views) == 1  # one cloud
+        return [v.centre_m.tolist() for v in views[0]]
+
+    assert centres(full) == [c.T_world_cam[:3, 3].tolist() for c in cams]
+    assert centres(dropped) == [c.T_world_cam[:3, 3].tolist() for c in (cams[0], cams[2])]
+
+
 def test_stream_keeps_order_and_equals_process(predictor: DemocapPredictor) -> None:
     cams = _cameras()
     sets = [_frame_set(cams, seed=s) for s in range(6)]
@@ -341,7 +385,9 @@ def test_errors_of_every_stage_propagate(
     class Failing:
         calls = 0
 
-        def predict_many(self, clouds: Sequence[npt.ArrayLike]) -> list[Prediction]:
+        def predict_many(
+            self, clouds: Sequence[npt.ArrayLike], *, views: object = None
+        ) -> list[Prediction]:
             Failing.calls += 1
             if Failing.calls == 3:
                 raise _Boom("network failed")

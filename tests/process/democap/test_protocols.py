@@ -33,6 +33,7 @@ from mocaprig.process.democap.evaluate import (
 from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.model import build_network
 from mocaprig.process.democap.simdata import (
+    Camera,
     ObservationModel,
     PoseFrames,
     in_frustum,
@@ -149,6 +150,19 @@ def test_in_frustum_is_the_cameras_view() -> None:
     assert seen[:, 0].all()
     assert not seen[:, 1].any()
     assert not seen[:, 2].all()
+
+
+def test_in_frustum_uses_each_cameras_principal_point_and_image_size() -> None:
+    cam = Camera(centre_m=np.zeros(3), r_cw=np.eye(3), focal_px=600.0)
+    # 1 m ahead, 0.8 m to the right: u = 424 + 480 = 904 px, past the simulated 848
+    right = np.array([[0.8, 0.0, 1.0]])
+    assert not in_frustum(right, [cam]).any()
+    wide = replace(cam, principal_px=(640.0, 360.0), size_px=(1280, 720))
+    assert in_frustum(right, [wide]).all()  # u = 1120 of 1280
+    # the principal point moves the view: cx = 100 puts x = -0.2 m at u = -20
+    left = np.array([[-0.2, 0.0, 1.0]])
+    assert in_frustum(left, [cam]).all()
+    assert not in_frustum(left, [replace(cam, principal_px=(100.0, 240.0))]).any()
 
 
 def test_a_frame_out_of_view_is_skipped_and_counted(tiny_config: DemocapConfig) -> None:

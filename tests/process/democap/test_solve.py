@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -281,6 +283,8 @@ def test_the_solve_sees_what_the_rig_sees() -> None:
     """Its view test is simdata.in_frustum's, per problem and camera list (padded rigs)."""
     rng = np.random.default_rng(6)
     rigs = [sample_rig(rng, num_cameras=n) for n in (4, 2, 3)]
+    # a real camera's own principal point and image size (a live rig's view)
+    rigs[1][0] = replace(rigs[1][0], principal_px=(600.0, 300.0), size_px=(1280, 720))
     pts = rng.uniform([-3.0, -3.0, -0.5], [3.0, 3.0, 3.0], (3, 400, 3))
     views = S._Views.of(rigs)
     got = views.seen(torch.from_numpy(pts)).numpy()
