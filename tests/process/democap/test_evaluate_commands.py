@@ -119,7 +119,9 @@ def test_demo_figures_are_quick_and_complete() -> None:
 
 @needs_ckpt
 def test_cli_eval_json(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["democap", "eval", "--frames", "2", "--all-cameras", "--json"]) == 0
+    # the JSON's shape, not the solve's accuracy (the accuracy tests run the solve)
+    args = ["democap", "eval", "--frames", "2", "--all-cameras", "--no-solve", "--json"]
+    assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert {"mpjpe_mm", "mpmpe_mm", "pck50"} <= set(out)
     assert set(out["by_cameras"]) == {"4", "3", "2"}
@@ -143,7 +145,9 @@ def test_torso_tilt_is_the_hips_to_neck_angle_from_the_vertical() -> None:
 def test_cli_eval_gives_figures_by_torso_tilt_over_every_frame_and_inside(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    assert main(["democap", "eval", "--freestyle", "--frames", "4", "--json"]) == 0
+    # the bins' bookkeeping, whatever the estimator (the network alone: quicker)
+    args = ["democap", "eval", "--freestyle", "--frames", "4", "--no-solve", "--json"]
+    assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     bins, inside = out["per_torso_tilt"], out["inside_volume"]["per_torso_tilt"]
     assert list(bins) == ["0-20", "20-40", "40-60", "60-180"]
@@ -154,7 +158,7 @@ def test_cli_eval_gives_figures_by_torso_tilt_over_every_frame_and_inside(
     # the frame-weighted bins give back the overall MPJPE
     total = sum(b["mpjpe_mm"] * b["frames"] for b in bins.values() if b["frames"])
     assert total / out["frames"] == pytest.approx(out["mpjpe_mm"], rel=1e-9)
-    assert main(["democap", "eval", "--freestyle", "--frames", "2"]) == 0
+    assert main(["democap", "eval", "--freestyle", "--frames", "2", "--no-solve"]) == 0
     assert "by the torso's tilt from the vertical" in capsys.readouterr().out
 
 

@@ -350,6 +350,7 @@ def test_democap_run_command_prints_json_and_refuses_existing_outputs(
     argv = [
         "democap", "run", str(replayed.session), "--calib", str(replayed.calib),
         "--out", str(out), "--c3d", str(tmp_path / "pose.c3d"), "--every", "4", "--json",
+        "--no-solve",  # the command's outputs and refusals; the replay fixture runs the solve
     ]  # fmt: skip
     assert main(argv) == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
