@@ -6,7 +6,8 @@ go through the committed ``lite`` network (the 3-turn ensemble, as shipped) and 
 the default starts (the ensemble's and each turn's, and each of them bent at the hips: 8) with
 and without the limb search after them, and configurations in between; then the predictor's
 whole solve stage (:class:`DemocapPredictor`: six turns for a sparse cloud) without and with
-the pose bank's second solve (:mod:`mocaprig.process.democap.pose_bank`), and with the
+the pose bank's second solve (:mod:`mocaprig.process.democap.pose_bank`; the bank placed at
+the estimated height only, and at the three heights of the default), and with the
 re-solve from its own solution after it (the default: ``DemocapPredictor.resolve_rounds``), its
 time read from ``last_timings_s["solve_s"]`` (the network's passes left out); each is timed in
 rounds that interleave them (a shared machine: a load change hits all alike), as seconds
@@ -33,6 +34,7 @@ import torch
 from mocaprig.process.democap.dataset import simulate_sample
 from mocaprig.process.democap.evaluate import EVAL_JOINTS, held_out_pool
 from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.pose_bank import BankSearch
 from mocaprig.process.democap.solve import SolveOptions, solve_skeleton
 
 
@@ -88,6 +90,9 @@ def main() -> int:
     predictors = {
         "predictor solve stage, no pose bank": DemocapPredictor(pose_bank=False),
         "predictor solve stage + pose bank, no re-solve": DemocapPredictor(resolve_rounds=0),
+        "predictor solve stage + pose bank at the estimated height only + re-solve": (
+            DemocapPredictor(bank_search=BankSearch(height_scales=(1.0,)))
+        ),
         "predictor solve stage + pose bank + re-solve (default)": DemocapPredictor(),
     }
     rows: dict[str, list[float]] = {c: [] for c in [*configs, *predictors]}

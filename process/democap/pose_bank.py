@@ -7,7 +7,8 @@ better (docs/democap.md, "Pose bank"). The bank is a fixed set of real poses, in
 the network: the medoids of a k-means over the joint positions of motion-capture frames (the
 corpus's ``train`` split, :func:`build_pose_bank`), each stored with its heading removed on the
 reference body (1.75 m). :func:`bank_starts` places every bank pose at every heading of a
-ring on a cloud, scaled to the body's estimated height, slides each onto the cloud
+ring on a cloud, scaled to the body's estimated height and to a shorter and a taller body
+(:attr:`BankSearch.height_scales`), slides each onto the cloud
 (translation-only ICP), scores it by how well it explains the cloud (both ways, bounded), and
 returns the best few as starts for :func:`.solve.solve_skeleton`.
 
@@ -103,6 +104,11 @@ class BankSearch:
             solve's selection energy (:attr:`.solve.SolveResult.energy`) per cloud point is
             above this: a cloud the network's starts explain well is left alone (on the
             validation sets 6–28 % of the frames are searched, for all of the gain).
+        height_scales: the bank is placed on the body's estimated height times each of
+            these, ``starts`` starts each: the estimate comes from a solve that explained
+            the cloud poorly, and on a body off the model it is often what went wrong (a
+            2.2 m subject solved 1.75 m tall). The default spans the solve's own height
+            range (:attr:`.solve.SolveOptions.height_range`).
     """
 
     headings: int = 12
@@ -114,6 +120,7 @@ class BankSearch:
     gate_m: float = 0.05
     icp_gate_m: float = 0.15
     energy_per_point: float = 0.6
+    height_scales: tuple[float, ...] = (0.87, 1.0, 1.15)
 
     def __post_init__(self) -> None:
         for name in ("headings", "starts", "screen", "keep", "subsample"):
@@ -126,6 +133,14 @@ class BankSearch:
         if not self.energy_per_point >= 0.0:
             msg = f"BankSearch.energy_per_point must be >= 0, got {self.energy_per_point}"
             raise ValidationError(msg)
+        scales = tuple(float(f) for f in self.height_scales)
+        if not scales or not all(np.isfinite(f) and f > 0 for f in scales):
+            msg = (
+                "BankSearch.height_scales must be one or more positive factors, "
+                f"got {self.height_scales!r}"
+            )
+            raise ValidationError(msg)
+        object.__setattr__(self, "height_scales", scales)
 
 
 def _without_heading(poses: FloatArray) -> FloatArray:
@@ -340,9 +355,10 @@ def bank_starts(
         search: how (default :class:`BankSearch`).
 
     Returns:
-        markers (S, B, 53, 3) and DeMoCap joints (S, B, 19, 3), world, m: the S = ``starts``
-        best placements of distinct poses per cloud, best first (fewer poses in the bank than
-        S: placements repeat).
+        markers (S, B, 53, 3) and DeMoCap joints (S, B, 19, 3), world, m: for each of the
+        search's ``height_scales`` in turn, the ``starts`` best placements of distinct poses
+        per cloud on a body of that multiple of ``heights_m``, best first (S = ``starts`` ×
+        the scales; fewer poses in the bank than ``starts``: placements repeat).
 
     Raises:
         ValidationError: ``heights_m`` not one positive height per cloud, a cloud of the
@@ -355,42 +371,57 @@ def bank_starts(
         raise ValidationError(msg)
     tm, tj = _templates(bank, opt.headings)
     n_start = opt.starts
-    out_m = np.empty((n_start, len(clouds), tm.shape[1], 3))
-    out_j = np.empty((n_start, len(clouds), tj.shape[1], 3))
+    n_s = n_start * len(opt.height_scales)
+    out_m = np.empty((n_s, len(clouds), tm.shape[1], 3))
+    out_j = np.empty((n_s, len(clouds), tj.shape[1], 3))
     for b, cloud in enumerate(clouds):
         p = np.asarray(check_finite(check_shape(cloud, ["N", 3], name="cloud")), np.float32)
         if len(p) == 0:
             msg = f"cloud {b} has no point; the pose bank cannot place a body on it"
             raise ValidationError(msg)
         pts = torch.from_numpy(p)
-        s = float(h[b]) / _BANK_HEIGHT_M
-        m = tm * s
-        t = pts.mean(0) - m.mean(1)
-        # screen: every placement where the centroids meet, scored on a subsample of the
-        # cloud taken evenly through it (the same points whatever else is in the call) at a
-        # wide gate; coarse: the best ``screen`` slid onto the subsample; fine: the best
-        # ``keep`` of those slid onto the whole cloud.
-        few = pts[np.linspace(0, len(pts) - 1, min(opt.subsample, len(pts))).round().astype(int)]
-        go = torch.argsort(_score(m, few, t, opt.screen_gate_m))[: opt.screen]
-        t_go, sc = _slide(m[go], few, t[go], 3, opt.icp_gate_m, opt.gate_m)
-        top = torch.argsort(sc)[: opt.keep]
-        best = go[top]
-        fine_gate = min(opt.icp_gate_m, 0.10)
-        t_best, sc = _slide(m[best], pts, t_go[top], 3, fine_gate, opt.gate_m)
-        order = torch.argsort(sc).tolist()
-        picked: list[int] = []
-        poses: set[int] = set()
-        for k in order:
-            pose = int(best[k]) // opt.headings
-            if pose not in poses:
-                poses.add(pose)
-                picked.append(k)
-            if len(picked) == n_start:
-                break
-        picked += [picked[-1]] * (n_start - len(picked))
-        for i, k in enumerate(picked):
-            c = int(best[k])
-            shift = t_best[k].double()
-            out_m[i, b] = (m[c].double() + shift).numpy()
-            out_j[i, b] = (s * tj[c] + shift).numpy()
+        for i, f in enumerate(opt.height_scales):
+            rows = slice(i * n_start, (i + 1) * n_start)
+            out_m[rows, b], out_j[rows, b] = _place(pts, float(h[b]) * f, tm, tj, opt)
+    return out_m, out_j
+
+
+def _place(
+    pts: torch.Tensor, height_m: float, tm: torch.Tensor, tj: torch.Tensor, opt: BankSearch
+) -> tuple[FloatArray, FloatArray]:
+    """The ``opt.starts`` best placements of distinct bank poses on one cloud (N, 3), the
+    bank scaled to ``height_m``: markers (starts, 53, 3) and joints (starts, 19, 3), m."""
+    n_start = opt.starts
+    s = height_m / _BANK_HEIGHT_M
+    m = tm * s
+    t = pts.mean(0) - m.mean(1)
+    # screen: every placement where the centroids meet, scored on a subsample of the
+    # cloud taken evenly through it (the same points whatever else is in the call) at a
+    # wide gate; coarse: the best ``screen`` slid onto the subsample; fine: the best
+    # ``keep`` of those slid onto the whole cloud.
+    few = pts[np.linspace(0, len(pts) - 1, min(opt.subsample, len(pts))).round().astype(int)]
+    go = torch.argsort(_score(m, few, t, opt.screen_gate_m))[: opt.screen]
+    t_go, sc = _slide(m[go], few, t[go], 3, opt.icp_gate_m, opt.gate_m)
+    top = torch.argsort(sc)[: opt.keep]
+    best = go[top]
+    fine_gate = min(opt.icp_gate_m, 0.10)
+    t_best, sc = _slide(m[best], pts, t_go[top], 3, fine_gate, opt.gate_m)
+    order = torch.argsort(sc).tolist()
+    picked: list[int] = []
+    poses: set[int] = set()
+    for k in order:
+        pose = int(best[k]) // opt.headings
+        if pose not in poses:
+            poses.add(pose)
+            picked.append(k)
+        if len(picked) == n_start:
+            break
+    picked += [picked[-1]] * (n_start - len(picked))
+    out_m = np.empty((n_start, tm.shape[1], 3))
+    out_j = np.empty((n_start, tj.shape[1], 3))
+    for i, k in enumerate(picked):
+        c = int(best[k])
+        shift = t_best[k].double()
+        out_m[i] = (m[c].double() + shift).numpy()
+        out_j[i] = (s * tj[c] + shift).numpy()
     return out_m, out_j

@@ -112,7 +112,7 @@ def test_the_search_places_a_bank_pose_where_its_cloud_is() -> None:
     mk, jt = _placed(bank.poses[k], height_m=1.62, yaw_deg=150.0, shift_m=shift)
     seen = rng.random(len(mk)) < 0.7
     cloud = mk[seen] + rng.normal(0.0, 0.003, (int(seen.sum()), 3))
-    sm, sj = bank_starts([cloud], [1.62], bank, search=BankSearch(starts=2))
+    sm, sj = bank_starts([cloud], [1.62], bank, search=BankSearch(starts=2, height_scales=(1.0,)))
     assert sm.shape == (2, 1, 53, 3)
     assert sj.shape == (2, 1, len(DEMOCAP_JOINTS), 3)
     assert np.linalg.norm(sj[0, 0] - jt, axis=-1).mean() < 0.01
@@ -133,12 +133,40 @@ def test_the_screen_keeps_the_placement_that_sliding_every_one_finds() -> None:
         )
         truth.append(jt)
     every = len(bank) * BankSearch().headings
-    _, full = bank_starts(clouds, [1.8] * 3, bank, search=BankSearch(screen=every))
-    _, screened = bank_starts(clouds, [1.8] * 3, bank)
+    at = (1.0,)  # the bodies' own height: the screen is what is tested
+    _, full = bank_starts(
+        clouds, [1.8] * 3, bank, search=BankSearch(screen=every, height_scales=at)
+    )
+    _, screened = bank_starts(clouds, [1.8] * 3, bank, search=BankSearch(height_scales=at))
     for b in range(3):
         # the yaws are 10 degrees off the search's 30-degree headings: a few cm at the limbs
         assert np.linalg.norm(full[0, b] - truth[b], axis=-1).mean() < 0.08
         assert np.linalg.norm(screened[0, b] - full[0, b], axis=-1).mean() < 0.005
+
+
+def test_a_body_solved_too_short_is_found_at_a_scaled_height() -> None:
+    """A 2.05 m subject whose first solve said 1.75 m: the bank is also placed 15 % taller."""
+    bank = load_pose_bank()
+    rng = np.random.default_rng(8)
+    mk, jt = _placed(bank.poses[60], height_m=2.05, yaw_deg=90.0, shift_m=np.array([0.3, 0, 0]))
+    seen = rng.random(len(mk)) < 0.7
+    cloud = mk[seen] + rng.normal(0.0, 0.003, (int(seen.sum()), 3))
+    one = BankSearch(starts=2, height_scales=(1.0,))
+    _, at_estimate = bank_starts([cloud], [1.75], bank, search=one)
+    sm, sj = bank_starts([cloud], [1.75], bank, search=BankSearch(starts=2))
+    assert sm.shape == (6, 1, 53, 3)  # 2 starts at each of the 3 heights
+    np.testing.assert_array_equal(sj[2:4], at_estimate)  # the estimate's own, in the middle
+    err = np.linalg.norm(sj[:, 0] - jt, axis=-1).mean(axis=1)
+    assert err[4] < 0.5 * err[2]  # 1.75 x 1.15 = 2.01 m: far nearer the subject
+    assert err[4] < 0.04
+
+
+def test_bad_search_options_are_refused() -> None:
+    for scales in ((), (1.0, 0.0), (float("nan"),)):
+        with pytest.raises(ValidationError, match="height_scales"):
+            BankSearch(height_scales=scales)
+    with pytest.raises(ValidationError, match="starts"):
+        BankSearch(starts=0)
 
 
 def test_the_search_refuses_heights_that_do_not_match_the_clouds() -> None:
