@@ -9,11 +9,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from mocaprig.cli import add_json_flag, emit_json, usage_handler
-from mocaprig.progress import ProgressBar, StatusLine
+from mocaprig.progress import ProgressBar, StageProgress, StatusLine
 
 __all__ = [
     "PROTOCOL_CHOICES",
@@ -606,6 +607,18 @@ def _train_corpus(args: argparse.Namespace) -> tuple[tuple[Any, ...], tuple[Any,
     )
 
 
+def _figure_progress(
+    progress: StageProgress, protocol: str, cameras: int, *, several: bool
+) -> Callable[[str, int, int], None]:
+    """``progress`` with each figure named by its protocol (and cameras when several)."""
+
+    def report(label: str, done: int, total: int) -> None:
+        name = label if label == protocol else f"{protocol} {label}"
+        progress(f"{name}, {cameras} cameras" if several else name, done, total)
+
+    return report
+
+
 def democap_eval(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig democap eval``; returns 0.
 
@@ -649,10 +662,8 @@ def democap_eval(args: argparse.Namespace) -> int:
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)
-    # evaluate/run_protocol report no progress of their own: one step per figure.
-    bar = ProgressBar("democap eval", unit="figures")
-    steps = len(cams) * (1 if special else len(protocols))
-    bar(0, steps)
+    # One line per figure: its frames as they are estimated (the solve takes minutes).
+    progress = StageProgress("democap eval: ")
     seen = False
     results: list[ProtocolResult] = []
     by_cameras: dict[str, Any] = {}
@@ -672,7 +683,12 @@ def democap_eval(args: argparse.Namespace) -> int:
         )
         for k in cams:
             rep = evaluate(
-                predictor, seed=args.seed, num_cameras=k, frames_per_take=frames, pool=pool
+                predictor,
+                seed=args.seed,
+                num_cameras=k,
+                frames_per_take=frames,
+                pool=pool,
+                progress=progress.stage(f"{k} cameras"),
             )
             res = ProtocolResult(
                 "bvh-motion" if clip is not None else "freestyle",
@@ -686,11 +702,10 @@ def democap_eval(args: argparse.Namespace) -> int:
             )
             results.append(res)
             by_cameras[str(k)] = res.to_dict()
-            bar(len(by_cameras), steps)
         results = results[:1]
     else:
-        for n_proto, proto in enumerate(protocols):
-            for n_cams, k in enumerate(cams):
+        for proto in protocols:
+            for k in cams:
                 got = run_protocol(
                     predictor,
                     proto,
@@ -699,11 +714,12 @@ def democap_eval(args: argparse.Namespace) -> int:
                     num_cameras=k,
                     subjects=args.subjects,
                     frames=args.frames,
+                    progress=_figure_progress(progress, proto, k, several=len(cams) > 1),
                 )
                 if k == cams[0]:
                     results += got
                 by_cameras[str(k)] = got[0].to_dict()
-                bar(n_proto * len(cams) + n_cams + 1, steps)
+    progress.done()
     for r in results:
         if r.trained_clips:
             print(

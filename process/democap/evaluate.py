@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -320,6 +320,7 @@ def evaluate(
     batch: int = 16,
     pool: list[PoseFrames] | None = None,
     observation: ObservationModel = NOMINAL_OBSERVATION,
+    progress: Callable[[int, int], None] | None = None,
 ) -> EvalReport:
     """Run ``predictor`` on a held-out simulated test set and measure it.
 
@@ -338,6 +339,7 @@ def evaluate(
         batch: frames per network batch.
         pool: takes to use instead of building them (for callers that reuse one test set).
         observation: the D415 model's scales (the ``perturbed`` protocol; default: training's).
+        progress: called ``(frames estimated, frames)`` after each batch.
 
     Raises:
         ValidationError: a non-positive ``frames_per_take`` or ``subjects``.
@@ -382,11 +384,15 @@ def evaluate(
             "%d of %d frames skipped: fewer than 2 points", requested - len(clouds), requested
         )
     pm, pj = [], []
+    if progress is not None:
+        progress(0, len(clouds))
     for k in range(0, len(clouds), batch):
         # the rig is calibrated: the solve knows where the cameras look
         for p in predictor.predict_many(clouds[k : k + batch], views=views[k : k + batch]):
             pm.append(p.markers_m)
             pj.append(p.joints_m)
+        if progress is not None:
+            progress(len(pm), len(clouds))
     pred_m, pred_j = np.array(pm) * 1000.0, np.array(pj) * 1000.0
     true_m, true_j = np.array(tm) * 1000.0, np.array(tj) * 1000.0
     markers = predictor.predicts_markers  # "pose": no markers, so no segment frames either
@@ -422,6 +428,19 @@ def evaluate(
 
 
 # ------------------------------------------------------------------------------- protocols
+
+
+def _stage(
+    progress: Callable[[str, int, int], None] | None, label: str
+) -> Callable[[int, int], None] | None:
+    """``progress`` bound to one figure's label (None stays None)."""
+    if progress is None:
+        return None
+
+    def report(done: int, total: int) -> None:
+        progress(label, done, total)
+
+    return report
 
 
 @dataclass(frozen=True, slots=True)
@@ -507,11 +526,13 @@ def unseen_real(
     subjects: int = 1,
     frames_per_clip: int = 20,
     subject_model: SubjectModel = NOMINAL_SUBJECTS,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> ProtocolResult:
     """The ``unseen-real`` protocol: the corpus test split on ``subjects`` new bodies per clip,
     ``frames_per_clip`` frames each, without the clips the checkpoint was trained on (flagged
     in ``trained_clips``); with ``subject_model`` other than the nominal one, the
-    ``off-model`` protocol (:func:`off_model`).
+    ``off-model`` protocol (:func:`off_model`). ``progress`` is told ``(figure, frames
+    estimated, frames)``.
 
     Raises:
         ValidationError: the corpus folder or one of its test clips is missing.
@@ -543,7 +564,12 @@ def unseen_real(
         subject_model=subject_model,
     )
     rep = evaluate(
-        predictor, seed=seed, num_cameras=num_cameras, frames_per_take=frames_per_clip, pool=pool
+        predictor,
+        seed=seed,
+        num_cameras=num_cameras,
+        frames_per_take=frames_per_clip,
+        pool=pool,
+        progress=_stage(progress, name),
     )
     note = ""
     if flagged:
@@ -569,6 +595,7 @@ def off_model(
     num_cameras: int = 4,
     subjects: int = 1,
     frames_per_clip: int = 20,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> ProtocolResult:
     """The ``off-model`` protocol: :func:`unseen_real` on :data:`OFF_MODEL_SUBJECTS`, bodies
     the body model does not mirror (the estimator is not told).
@@ -585,6 +612,7 @@ def off_model(
         subjects=subjects,
         frames_per_clip=frames_per_clip,
         subject_model=OFF_MODEL_SUBJECTS,
+        progress=progress,
     )
 
 
@@ -598,12 +626,14 @@ def leave_one_activity_out(
     subjects: int = 1,
     frames_per_clip: int = 10,
     activities: Sequence[str] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> list[ProtocolResult]:
     """The ``leave-one-activity-out`` protocol: per activity of the split table, its clips of
     the train and test splits that the checkpoint was not trained on (the validation split is
     never reported). ``trained_on`` is True when any corpus clip of that activity was trained
     on: the figure then holds out the clips, not the activity (train with ``democap train
-    --hold-out-activity A`` for a true leave-one-activity-out run).
+    --hold-out-activity A`` for a true leave-one-activity-out run). ``progress`` is told
+    ``(activity, frames estimated, frames)``.
 
     Raises:
         ValidationError: the corpus folder or a clip is missing, or an unknown activity.
@@ -651,6 +681,7 @@ def leave_one_activity_out(
             num_cameras=num_cameras,
             frames_per_take=frames_per_clip,
             pool=pool,
+            progress=_stage(progress, act),
         )
         out.append(
             ProtocolResult(
@@ -676,13 +707,15 @@ def perturbed(
     frames_per_take: int = 8,
     scales: Sequence[float] = PERTURBATION_SCALES,
     bodies: bool = True,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> list[ProtocolResult]:
     """The ``perturbed`` protocol: the ``in-distribution`` takes of ``seed`` through the D415
     model with each knob (:data:`simdata.PERTURBATION_KNOBS`) at each of ``scales``, one knob
     at a time, then all knobs together the harder way (``"all harder"``: detection at the
     smallest scale, noise, strays and occlusion at the largest) and the easier way; then
     (``bodies``) the same takes on subjects pushed off the body model
-    (:data:`BODY_PERTURBATIONS`), one way at a time and all together."""
+    (:data:`BODY_PERTURBATIONS`), one way at a time and all together. ``progress`` is told
+    ``(perturbation, frames estimated, frames)``."""
     pool = held_out_pool(seed, subjects=subjects)
     budget = _budget(frames_per_take, subjects, seed)
     runs: list[tuple[str, ObservationModel]] = [
@@ -704,6 +737,7 @@ def perturbed(
             frames_per_take=frames_per_take,
             pool=pool,
             observation=model,
+            progress=_stage(progress, label),
         )
         out.append(ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget))
     for label, subject_model in BODY_PERTURBATIONS if bodies else ():
@@ -713,6 +747,7 @@ def perturbed(
             num_cameras=num_cameras,
             frames_per_take=frames_per_take,
             pool=held_out_pool(seed, subjects=subjects, subject_model=subject_model),
+            progress=_stage(progress, label),
         )
         out.append(
             ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed-body"], rep, budget=budget)
@@ -729,10 +764,12 @@ def run_protocol(
     num_cameras: int = 4,
     subjects: int = 1,
     frames: int | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> list[ProtocolResult]:
     """One protocol's labelled figures. ``frames`` per take or clip (default: 40 for
     ``in-distribution``, 20 for ``unseen-real`` and ``off-model``, 10 for
-    ``leave-one-activity-out``, 8 per perturbation).
+    ``leave-one-activity-out``, 8 per perturbation). ``progress`` is told ``(figure's
+    label, frames estimated, frames)`` as each figure's frames are estimated.
 
     Raises:
         ValidationError: an unknown protocol, or a corpus protocol without ``corpus_dir``.
@@ -743,7 +780,14 @@ def run_protocol(
     if protocol == "in-distribution":
         n = frames or 40
         pool = held_out_pool(seed, subjects=subjects)
-        rep = evaluate(predictor, seed=seed, num_cameras=num_cameras, frames_per_take=n, pool=pool)
+        rep = evaluate(
+            predictor,
+            seed=seed,
+            num_cameras=num_cameras,
+            frames_per_take=n,
+            pool=pool,
+            progress=_stage(progress, protocol),
+        )
         return [
             ProtocolResult(
                 protocol,
@@ -760,6 +804,7 @@ def run_protocol(
             num_cameras=num_cameras,
             subjects=subjects,
             frames_per_take=frames or 8,
+            progress=progress,
         )
     if corpus_dir is None:
         msg = (
@@ -777,6 +822,7 @@ def run_protocol(
                 subjects=subjects,
                 frames_per_clip=frames or 20,
                 subject_model=NOMINAL_SUBJECTS if protocol == "unseen-real" else OFF_MODEL_SUBJECTS,
+                progress=progress,
             )
         ]
     return leave_one_activity_out(
@@ -786,4 +832,5 @@ def run_protocol(
         num_cameras=num_cameras,
         subjects=subjects,
         frames_per_clip=frames or 10,
+        progress=progress,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +126,34 @@ def test_cli_eval_json(capsys: pytest.CaptureFixture[str]) -> None:
     out = json.loads(capsys.readouterr().out)
     assert {"mpjpe_mm", "mpmpe_mm", "pck50"} <= set(out)
     assert set(out["by_cameras"]) == {"4", "3", "2"}
+
+
+@needs_ckpt
+def test_cli_eval_draws_each_figures_frames_as_they_are_estimated(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # stderr is no terminal under pytest: --progress always draws anyway
+    args = ["democap", "eval", "--frames", "1", "--all-cameras", "--no-solve"]
+    assert main(["--progress", "always", *args]) == 0
+    err = capsys.readouterr().err
+    for k in (4, 3, 2):  # one line per figure, ending at its 6 frames (1 per take)
+        assert re.search(rf"democap eval: in-distribution, {k} cameras \[#+\] 6/6", err), err
+    assert main(["--progress", "always", *args, "--json"]) == 0
+    assert "\r" not in capsys.readouterr().err
+
+
+@needs_ckpt
+def test_evaluate_reports_the_frames_estimated_after_each_batch() -> None:
+    calls: list[tuple[int, int]] = []
+    rep = evaluate(
+        DemocapPredictor(rotations=1, solve=False),
+        pool=make_pool(0, "test", takes=1, seconds=0.5),
+        frames_per_take=5,
+        batch=2,
+        progress=lambda done, total: calls.append((done, total)),
+    )
+    n = rep.frames_requested - rep.skipped_frames
+    assert calls == [(0, n), *((k, n) for k in range(2, n, 2)), (n, n)]
 
 
 def test_torso_tilt_is_the_hips_to_neck_angle_from_the_vertical() -> None:
