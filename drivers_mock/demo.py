@@ -109,18 +109,39 @@ _IN_DISTRIBUTION_RECORDING = (
 )
 
 
-def _unseen_real_figures(corpus_dir: Path, seed: int) -> dict[str, Any]:
+def _unseen_real_figures(
+    corpus_dir: Path, seed: int, progress: Callable[[str], Progress | None] | None = None
+) -> dict[str, Any]:
     """The headline protocol on a small budget: the committed checkpoint on the corpus's test
     split (real motion of performers it never saw), 4 cameras, its default inference
     (ensemble and skeleton solve); the figures over the frames inside the cameras' view and
     over all frames; then the same clips on subjects the body model does not mirror (the
-    ``off-model`` protocol, under ``"off_model"``)."""
+    ``off-model`` protocol, under ``"off_model"``). ``progress`` makes each figure's
+    ``(frames estimated, frames)`` callback from its stage label."""
     from mocaprig.process.democap.evaluate import off_model, unseen_real
     from mocaprig.process.democap.infer import DemocapPredictor
 
+    def figure(label: str) -> Callable[[str, int, int], None] | None:
+        bar = None if progress is None else progress(label)
+        if bar is None:
+            return None
+        return lambda _figure, done, total: bar(done, total)
+
     predictor = DemocapPredictor()
-    res = unseen_real(predictor, corpus_dir, seed=seed, frames_per_clip=UNSEEN_REAL_FRAMES)
-    off = off_model(predictor, corpus_dir, seed=seed, frames_per_clip=UNSEEN_REAL_FRAMES)
+    res = unseen_real(
+        predictor,
+        corpus_dir,
+        seed=seed,
+        frames_per_clip=UNSEEN_REAL_FRAMES,
+        progress=figure("democap unseen-real"),
+    )
+    off = off_model(
+        predictor,
+        corpus_dir,
+        seed=seed,
+        frames_per_clip=UNSEEN_REAL_FRAMES,
+        progress=figure("democap off-model"),
+    )
     if res.report is None or off.report is None:
         msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note or off.note}"
         raise ProcessingError(msg)
@@ -947,15 +968,10 @@ def run_demo(
         )
     else:
         try:
-            bar = stage("democap unseen-real")
-            if bar is not None:
-                bar(0, 1)
-            figures["democap_unseen_real"] = _unseen_real_figures(corpus, seed)
+            figures["democap_unseen_real"] = _unseen_real_figures(corpus, seed, stage)
             stages["democap_unseen_real"] = (
                 "done (unseen-real: the corpus test split, real motion of unseen performers)"
             )
-            if bar is not None:
-                bar(1, 1)
         except MocaprigError as err:
             _log.error("DeMoCap unseen-real stage failed: %s", err)
             figures["democap_unseen_real"] = {"error": str(err)}

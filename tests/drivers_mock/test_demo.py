@@ -3,9 +3,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mocaprig.drivers_mock.commands import _unseen_real_line
 from mocaprig.drivers_mock.demo import SKELETON_FIGURE, _skeleton_figure
@@ -65,3 +68,28 @@ def test_demo_text_names_the_unseen_real_protocol_and_both_frame_sets() -> None:
 def test_demo_text_says_why_the_unseen_real_figure_is_missing() -> None:
     assert "no motion corpus" in _unseen_real_line({})
     assert "clip cmu_02_01 is missing" in _unseen_real_line({"error": "clip cmu_02_01 is missing"})
+
+
+@pytest.mark.slow
+def test_unseen_real_stage_draws_each_figures_frames(
+    shared_data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mocaprig.drivers_mock import demo
+    from mocaprig.process.democap import infer
+
+    # the stage's bookkeeping, not its accuracy: one frame a clip, the network alone
+    monkeypatch.setattr(demo, "UNSEEN_REAL_FRAMES", 1)
+    monkeypatch.setattr(infer, "DemocapPredictor", partial(infer.DemocapPredictor, solve=False))
+    calls: dict[str, list[tuple[int, int]]] = {}
+
+    def stage(label: str) -> Callable[[int, int], None]:
+        return lambda done, total: calls.setdefault(label, []).append((done, total))
+
+    got = demo._unseen_real_figures(shared_data / "motion" / "corpus", 0, stage)
+    assert list(calls) == ["democap unseen-real", "democap off-model"]
+    for label, frames in (
+        ("democap unseen-real", got["frames"]),
+        ("democap off-model", got["off_model"]["frames"]),
+    ):
+        assert calls[label][0] == (0, frames)
+        assert calls[label][-1] == (frames, frames)
