@@ -939,18 +939,18 @@ def run_demo(
     try:
         from mocaprig.process.democap import demo_figures
 
-        # demo_figures reports no progress: the stage's start and end show.
-        bar = stage("democap figures")
-        if bar is not None:
-            bar(0, 1)
         figures["democap"] = {
-            **demo_figures(seed=seed),
+            **demo_figures(
+                seed=seed,
+                progress=staged(
+                    "democap in-distribution",
+                    {"solve": "with the solve", "network": "network alone"},
+                ),
+            ),
             "protocol": "in-distribution",
             "holds_out": _IN_DISTRIBUTION,
         }
         stages["democap"] = "done (in-distribution: held-out simulated takes)"
-        if bar is not None:
-            bar(1, 1)
     except MocaprigError as err:
         _log.error("DeMoCap stage failed: %s", err)
         figures["democap"] = {"error": str(err)}

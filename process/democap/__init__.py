@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Any
 from mocaprig.lazy_exports import lazy_getattr
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from mocaprig.process.democap.checkpoint import (
         DEFAULT_CHECKPOINT,
         Checkpoint,
@@ -100,11 +102,17 @@ __all__ = [
 ]
 
 
-def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
+def demo_figures(
+    *,
+    seed: int = 0,
+    frames_per_take: int = 10,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Any]:
     """Quick figures for ``mocaprig demo`` (a few seconds): the committed ``lite`` checkpoint
     on a small held-out simulated test set (6 takes, 4 cameras), with the default inference
     (rotation ensemble and skeleton solve), the network's own ensemble estimate (no solve)
-    and its single shot (the paper's inference).
+    and its single shot (the paper's inference). ``progress`` is told ``(inference, frames
+    estimated, frames)``: ``"solve"``, ``"network"``, ``"single shot"``.
 
     Returns:
         ``{"mpjpe_mm", "mpmpe_mm", "pck50", "mpjae_deg", "frames", "config", "epochs",
@@ -119,8 +127,20 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
 
     predictor = DemocapPredictor()
     pool = held_out_pool(seed)  # one test set for both inferences
+
+    def told(name: str) -> Callable[[int, int], None] | None:
+        if progress is None:
+            return None
+        report = progress
+        return lambda done, total: report(name, done, total)
+
     m = evaluate(
-        predictor, seed=seed, num_cameras=4, frames_per_take=frames_per_take, pool=pool
+        predictor,
+        seed=seed,
+        num_cameras=4,
+        frames_per_take=frames_per_take,
+        pool=pool,
+        progress=told("solve"),
     ).metrics
     network, single = (
         evaluate(
@@ -129,8 +149,9 @@ def demo_figures(*, seed: int = 0, frames_per_take: int = 10) -> dict[str, Any]:
             num_cameras=4,
             frames_per_take=frames_per_take,
             pool=pool,
+            progress=told(name),
         ).metrics
-        for k in (predictor.rotations, 1)
+        for k, name in ((predictor.rotations, "network"), (1, "single shot"))
     )
     return {
         "mpjpe_mm": m.mpjpe_mm,

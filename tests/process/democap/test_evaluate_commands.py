@@ -112,10 +112,15 @@ def test_committed_lite_model_accuracy_on_held_out_data(
 
 @needs_ckpt
 def test_demo_figures_are_quick_and_complete() -> None:
-    d = demo_figures(frames_per_take=4)
+    calls: list[tuple[str, int, int]] = []
+    d = demo_figures(frames_per_take=4, progress=lambda *call: calls.append(call))
     assert {"mpjpe_mm", "mpmpe_mm", "pck50", "mpjae_deg", "frames"} <= set(d)
     assert d["frames"] == 24
     assert d["config"] == "lite"
+    # each inference's frames, from none to all, in the order they run
+    assert [c for c in calls if c[1] in (0, 24)] == [
+        (name, done, 24) for name in ("solve", "network", "single shot") for done in (0, 24)
+    ]
 
 
 @needs_ckpt
