@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -109,6 +109,29 @@ _IN_DISTRIBUTION_RECORDING = (
 )
 
 
+def _staged(
+    progress: Callable[[str], Progress | None] | None,
+    prefix: str,
+    labels: Mapping[str, str] | None = None,
+) -> StageReport | None:
+    """A ``(stage, done, total)`` callback drawing one bar per stage from the ``progress``
+    factory, labelled ``prefix`` and the stage's words (``labels``; default: its name)."""
+    if progress is None:
+        return None
+    factory = progress
+    words = dict(labels or {})
+    bars: dict[str, Progress | None] = {}
+
+    def report(name: str, done: int, total: int) -> None:
+        if name not in bars:
+            bars[name] = factory(f"{prefix} {words.get(name, name)}")
+        bar = bars[name]
+        if bar is not None:
+            bar(done, total)
+
+    return report
+
+
 def _unseen_real_figures(
     corpus_dir: Path, seed: int, progress: Callable[[str], Progress | None] | None = None
 ) -> dict[str, Any]:
@@ -117,30 +140,26 @@ def _unseen_real_figures(
     (ensemble and skeleton solve); the figures over the frames inside the cameras' view and
     over all frames; then the same clips on subjects the body model does not mirror (the
     ``off-model`` protocol, under ``"off_model"``). ``progress`` makes each figure's
-    ``(frames estimated, frames)`` callback from its stage label."""
+    ``(frames estimated, frames)`` callback from its stage label (``"democap unseen-real"``,
+    ``"democap off-model"``)."""
     from mocaprig.process.democap.evaluate import off_model, unseen_real
     from mocaprig.process.democap.infer import DemocapPredictor
 
-    def figure(label: str) -> Callable[[str, int, int], None] | None:
-        bar = None if progress is None else progress(label)
-        if bar is None:
-            return None
-        return lambda _figure, done, total: bar(done, total)
-
+    report = _staged(progress, "democap")  # the figures report as "unseen-real", "off-model"
     predictor = DemocapPredictor()
     res = unseen_real(
         predictor,
         corpus_dir,
         seed=seed,
         frames_per_clip=UNSEEN_REAL_FRAMES,
-        progress=figure("democap unseen-real"),
+        progress=report,
     )
     off = off_model(
         predictor,
         corpus_dir,
         seed=seed,
         frames_per_clip=UNSEEN_REAL_FRAMES,
-        progress=figure("democap off-model"),
+        progress=report,
     )
     if res.report is None or off.report is None:
         msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note or off.note}"
@@ -857,23 +876,6 @@ def run_demo(
     def stage(label: str) -> Progress | None:
         return None if progress is None else progress(label)
 
-    def staged(prefix: str, labels: dict[str, str]) -> StageReport | None:
-        """A ``(stage, done, total)`` callback drawing one bar per stage (``labels``: the
-        words shown for a stage's name)."""
-        if progress is None:
-            return None
-        factory = progress
-        bars: dict[str, Progress | None] = {}
-
-        def report(name: str, done: int, total: int) -> None:
-            if name not in bars:
-                bars[name] = factory(f"{prefix} {labels.get(name, name)}")
-            bar = bars[name]
-            if bar is not None:
-                bar(done, total)
-
-        return report
-
     t0 = time.monotonic()
     sim = simulate_session(
         out / "session",
@@ -942,7 +944,8 @@ def run_demo(
         figures["democap"] = {
             **demo_figures(
                 seed=seed,
-                progress=staged(
+                progress=_staged(
+                    progress,
                     "democap in-distribution",
                     {"solve": "with the solve", "network": "network alone"},
                 ),
@@ -1034,7 +1037,9 @@ def run_demo(
 
     t0 = time.monotonic()
     try:
-        figures["eventcap"] = _eventcap_figures(seed, staged("eventcap", _EVENTCAP_STAGES))
+        figures["eventcap"] = _eventcap_figures(
+            seed, _staged(progress, "eventcap", _EVENTCAP_STAGES)
+        )
         stages["eventcap"] = (
             f"done ({EVENTCAP_BATCHES} batches of a simulated take; synthetic detections)"
         )
@@ -1053,7 +1058,7 @@ def run_demo(
     else:
         try:
             figures["eventcap_run"] = _eventcap_run_figures(
-                sim.out_dir, out, seed, staged("eventcap run", _EVENTCAP_RUN_STAGES)
+                sim.out_dir, out, seed, _staged(progress, "eventcap run", _EVENTCAP_RUN_STAGES)
             )
             stages["eventcap_run"] = f"done ({EVENTCAP_BATCHES} batches of session.mcap)"
         except MocaprigError as err:

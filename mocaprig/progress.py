@@ -27,6 +27,7 @@ __all__ = [
     "ProgressMode",
     "StageProgress",
     "StatusLine",
+    "bind_stage",
     "current_progress_mode",
     "end_status_line",
     "format_progress",
@@ -180,6 +181,21 @@ class StatusLine:
             self._stream.flush()
             self._drawn = False
             self._width = 0
+
+
+def bind_stage(
+    progress: Callable[[str, int, int], None] | None, stage: str
+) -> Callable[[int, int], None] | None:
+    """A ``(done, total)`` callback reporting to the stage-aware ``progress`` as ``stage``
+    (None when ``progress`` is None: no work is done for a report nobody reads)."""
+    if progress is None:
+        return None
+    report = progress
+
+    def bound(done: int, total: int) -> None:
+        report(stage, done, total)
+
+    return bound
 
 
 class ProgressBar:

@@ -12,6 +12,7 @@ from mocaprig.progress import (
     ProgressBar,
     StageProgress,
     StatusLine,
+    bind_stage,
     current_progress_mode,
     end_status_line,
     format_progress,
@@ -181,3 +182,12 @@ def test_a_stage_is_timed_from_the_last_report_of_the_stage_before(
     now[0] = 11.0  # the batches' first report comes after their first item
     stages("batches", 1, 2)
     assert out.getvalue().endswith("batches [##########          ] 1/2 0.1/s 10s left (10s)")
+
+
+def test_bind_stage_reports_as_its_stage_and_passes_none_through() -> None:
+    calls: list[tuple[str, int, int]] = []
+    bound = bind_stage(lambda *call: calls.append(call), "solve")
+    assert bound is not None
+    bound(3, 8)
+    assert calls == [("solve", 3, 8)]
+    assert bind_stage(None, "solve") is None

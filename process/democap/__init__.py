@@ -124,15 +124,10 @@ def demo_figures(
     """
     from mocaprig.process.democap.evaluate import evaluate, held_out_pool
     from mocaprig.process.democap.infer import DemocapPredictor
+    from mocaprig.progress import bind_stage
 
     predictor = DemocapPredictor()
     pool = held_out_pool(seed)  # one test set for both inferences
-
-    def told(name: str) -> Callable[[int, int], None] | None:
-        if progress is None:
-            return None
-        report = progress
-        return lambda done, total: report(name, done, total)
 
     m = evaluate(
         predictor,
@@ -140,7 +135,7 @@ def demo_figures(
         num_cameras=4,
         frames_per_take=frames_per_take,
         pool=pool,
-        progress=told("solve"),
+        progress=bind_stage(progress, "solve"),
     ).metrics
     network, single = (
         evaluate(
@@ -149,7 +144,7 @@ def demo_figures(
             num_cameras=4,
             frames_per_take=frames_per_take,
             pool=pool,
-            progress=told(name),
+            progress=bind_stage(progress, name),
         ).metrics
         for k, name in ((predictor.rotations, "network"), (1, "single shot"))
     )

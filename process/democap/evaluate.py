@@ -78,6 +78,7 @@ from mocaprig.process.democap.simdata import (
     in_frustum,
 )
 from mocaprig.process.metrics import PoseMetrics, per_group_mean, point_errors, pose_metrics
+from mocaprig.progress import bind_stage
 
 __all__ = [
     "BODY_PERTURBATIONS",
@@ -430,19 +431,6 @@ def evaluate(
 # ------------------------------------------------------------------------------- protocols
 
 
-def _stage(
-    progress: Callable[[str, int, int], None] | None, label: str
-) -> Callable[[int, int], None] | None:
-    """``progress`` bound to one figure's label (None stays None)."""
-    if progress is None:
-        return None
-
-    def report(done: int, total: int) -> None:
-        progress(label, done, total)
-
-    return report
-
-
 @dataclass(frozen=True, slots=True)
 class ProtocolResult:
     """One labelled figure of a protocol.
@@ -569,7 +557,7 @@ def unseen_real(
         num_cameras=num_cameras,
         frames_per_take=frames_per_clip,
         pool=pool,
-        progress=_stage(progress, name),
+        progress=bind_stage(progress, name),
     )
     note = ""
     if flagged:
@@ -681,7 +669,7 @@ def leave_one_activity_out(
             num_cameras=num_cameras,
             frames_per_take=frames_per_clip,
             pool=pool,
-            progress=_stage(progress, act),
+            progress=bind_stage(progress, act),
         )
         out.append(
             ProtocolResult(
@@ -737,7 +725,7 @@ def perturbed(
             frames_per_take=frames_per_take,
             pool=pool,
             observation=model,
-            progress=_stage(progress, label),
+            progress=bind_stage(progress, label),
         )
         out.append(ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget))
     for label, subject_model in BODY_PERTURBATIONS if bodies else ():
@@ -747,7 +735,7 @@ def perturbed(
             num_cameras=num_cameras,
             frames_per_take=frames_per_take,
             pool=held_out_pool(seed, subjects=subjects, subject_model=subject_model),
-            progress=_stage(progress, label),
+            progress=bind_stage(progress, label),
         )
         out.append(
             ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed-body"], rep, budget=budget)
@@ -786,7 +774,7 @@ def run_protocol(
             num_cameras=num_cameras,
             frames_per_take=n,
             pool=pool,
-            progress=_stage(progress, protocol),
+            progress=bind_stage(progress, protocol),
         )
         return [
             ProtocolResult(
