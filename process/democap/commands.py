@@ -195,6 +195,15 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     )
     tr.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time")
     tr.add_argument(
+        "--observation-jitter",
+        type=float,
+        default=0.0,
+        metavar="J",
+        help="each sample's D415 model scales (detection, noise, strays, occlusion) drawn from "
+        "[1-J, 1+J] (default: 0, the nominal model); the perturbed protocol's 0.5x / 1.5x "
+        "should stay outside it",
+    )
+    tr.add_argument(
         "--lr",
         type=float,
         default=None,
@@ -501,6 +510,7 @@ def democap_train(args: argparse.Namespace) -> int:
         corpus_subjects=args.corpus_subjects,
         validation_motions=validation,
         lr=args.lr,
+        observation_jitter=args.observation_jitter,
     )
     bar = ProgressBar("democap train", unit="steps")
     ckpt = train(
@@ -788,6 +798,8 @@ def _result_line(prefix: str, r: dict[str, Any]) -> str:
         f"{r['skipped_frames']} skipped); {inside}"
     )
     lines = [first, f"  holds out: {r['holds_out']}"]
+    if r["note"]:
+        lines.append(f"  note: {r['note']}")
     acts = ", ".join(f"{a} {v:.1f}" for a, v in r["per_action_mm"].items())
     lines.append(f"  per action or clip (mm): {acts}")
     tilts = ins.get("per_torso_tilt") or {}

@@ -17,6 +17,9 @@ A sample: one frame of one take, the actor turned to a random heading and moved 
 off the centre, seen by a freshly sampled rig (:func:`simdata.sample_rig`), fused
 (:func:`simdata.merge_views`), moved to the image frame, centred on the raw centroid, rotated
 (training: ±10° / ±180° / ±10°), normalised from the raw points and rendered front and back.
+Training may see each sample through its own D415 model (``observation_jitter``,
+:func:`jittered_observation`: detection, noise, strays and occlusion scaled by draws around 1),
+so the network meets sparser and noisier clouds than the nominal model gives.
 A frame whose fused cloud has fewer than 2 points (the actor out of every camera's view) gives
 no sample (:func:`simulate_sample` returns None): training draws another frame, evaluation
 skips it and counts it.
@@ -54,6 +57,7 @@ from mocaprig.process.democap.geometry import (
 )
 from mocaprig.process.democap.simdata import (
     NOMINAL_OBSERVATION,
+    PERTURBATION_KNOBS,
     Camera,
     ObservationModel,
     PoseFrames,
@@ -69,6 +73,7 @@ __all__ = [
     "Batch",
     "Sample",
     "SubjectModel",
+    "jittered_observation",
     "make_batch",
     "make_pool",
     "make_sample",
@@ -444,20 +449,53 @@ class Batch:
     joints: torch.Tensor
 
 
+def _check_jitter(jitter: float) -> None:
+    if not 0.0 <= jitter < 1.0:
+        msg = f"observation jitter must be in [0, 1), got {jitter!r}"
+        raise ValidationError(msg)
+
+
+def jittered_observation(rng: np.random.Generator, jitter: float) -> ObservationModel:
+    """A D415 model whose scales (:data:`simdata.PERTURBATION_KNOBS`) are each drawn uniformly
+    from ``[1 - jitter, 1 + jitter]``; ``jitter`` 0 gives the nominal model and draws nothing.
+
+    Raises:
+        ValidationError: ``jitter`` outside [0, 1).
+    """
+    _check_jitter(jitter)
+    if jitter == 0.0:
+        return NOMINAL_OBSERVATION
+    lo, hi = 1.0 - jitter, 1.0 + jitter
+    return ObservationModel(**{k: float(rng.uniform(lo, hi)) for k in PERTURBATION_KNOBS})
+
+
 def make_batch(
-    pool: list[PoseFrames], rng: np.random.Generator, size: int, *, size_px: int = 160
+    pool: list[PoseFrames],
+    rng: np.random.Generator,
+    size: int,
+    *,
+    size_px: int = 160,
+    observation_jitter: float = 0.0,
 ) -> Batch:
     """``size`` random samples from random takes and frames of ``pool``; a frame without a
-    usable cloud (:func:`simulate_sample`) is replaced by another random draw.
+    usable cloud (:func:`simulate_sample`) is replaced by another random draw. With
+    ``observation_jitter`` > 0 every sample sees its own D415 model
+    (:func:`jittered_observation`): a network that has met denser and sparser clouds than the
+    nominal model's.
 
     Raises:
         ProcessingError: :data:`_MAX_REDRAWS` draws in a row gave no usable cloud.
+        ValidationError: ``observation_jitter`` outside [0, 1).
     """
+    _check_jitter(observation_jitter)
     samples: list[Sample] = []
     misses = 0
     while len(samples) < size:
         take = pool[int(rng.integers(len(pool)))]
-        s = simulate_sample(take, int(rng.integers(take.num_frames)), rng, size_px=size_px)
+        obs = jittered_observation(rng, observation_jitter)
+        s = simulate_sample(
+            take, int(rng.integers(take.num_frames)), rng, size_px=size_px, observation=obs
+        )
         if s is None:
             misses += 1
             if misses >= _MAX_REDRAWS:

@@ -54,6 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import DEMOCAP_JOINTS, MARKER_NAMES, BvhClip
+from mocaprig.process.democap.checkpoint import Checkpoint
 from mocaprig.process.democap.config import Variant
 from mocaprig.process.democap.corpus import (
     CorpusClip,
@@ -99,6 +100,7 @@ __all__ = [
     "run_protocol",
     "segment_quaternions",
     "torso_tilt_deg",
+    "trained_observation_jitter",
     "unseen_real",
 ]
 
@@ -686,6 +688,28 @@ def leave_one_activity_out(
     return out
 
 
+def trained_observation_jitter(checkpoint: Checkpoint) -> float:
+    """The widest D415-model jitter any epoch of ``checkpoint`` trained with
+    (:attr:`train.TrainOptions.observation_jitter`; 0: the nominal model only)."""
+    return max((float(h.get("observation_jitter", 0.0)) for h in checkpoint.history), default=0.0)
+
+
+def _trained_range_note(model: ObservationModel, jitter: float) -> str:
+    """Where a perturbation's scales lie against the range training drew them from."""
+    lo, hi = 1.0 - jitter, 1.0 + jitter
+    moved = {k: float(getattr(model, k)) for k in PERTURBATION_KNOBS if getattr(model, k) != 1.0}
+    if jitter == 0.0:
+        return "training saw the nominal D415 model only (every scale 1)"
+    inside = sorted(k for k, v in moved.items() if lo <= v <= hi)
+    where = (
+        f"inside it for {', '.join(inside)}: not a model training never saw"
+        if inside
+        else "every moved scale lies outside it"
+    )
+    drew = f"training drew each scale from [{lo:g}, {hi:g}] (observation jitter {jitter:g})"
+    return f"{drew}; {where}"
+
+
 def perturbed(
     predictor: DemocapPredictor,
     *,
@@ -716,6 +740,7 @@ def perturbed(
     lo, hi = min(scales), max(scales)
     runs.append(("all harder", ObservationModel(detection=lo, noise=hi, strays=hi, occlusion=hi)))
     runs.append(("all easier", ObservationModel(detection=hi, noise=lo, strays=lo, occlusion=lo)))
+    jitter = trained_observation_jitter(predictor.checkpoint)
     out = []
     for label, model in runs:
         rep = evaluate(
@@ -727,7 +752,12 @@ def perturbed(
             observation=model,
             progress=bind_stage(progress, label),
         )
-        out.append(ProtocolResult("perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget))
+        note = _trained_range_note(model, jitter)
+        out.append(
+            ProtocolResult(
+                "perturbed", label, _HOLDS_OUT["perturbed"], rep, budget=budget, note=note
+            )
+        )
     for label, subject_model in BODY_PERTURBATIONS if bodies else ():
         rep = evaluate(
             predictor,

@@ -78,6 +78,11 @@ class TrainOptions:
         data_workers: processes simulating the training batches ahead of the network (0: in
             the training process). Each step's batch comes from its own seeded generator, so
             the batches, and on the CPU the trained weights, do not depend on this number.
+        observation_jitter: each training sample sees the D415 model with its scales
+            (detection, noise, strays, occlusion) drawn from ``[1 - j, 1 + j]``
+            (:func:`.dataset.jittered_observation`); 0: the nominal model. Stored in each
+            epoch's history record, so the ``perturbed`` protocol can say how far its scales
+            lie from what training saw.
         lr: the learning rate from this run's first epoch on (None: the config's for a new run,
             the stored schedule's for a resumed one). On a resumed run it is a warm restart, e.g.
             to fine-tune on new motions; the step decay continues from it.
@@ -98,6 +103,7 @@ class TrainOptions:
     device: Device = "auto"
     data_workers: int = 0
     lr: float | None = None
+    observation_jitter: float = 0.0
 
 
 Device = Literal["auto", "cpu", "cuda"]
@@ -132,8 +138,14 @@ def _init_worker(pool: list[PoseFrames]) -> None:
     torch.set_num_threads(1)  # in the worker process only: simulation is numpy work
 
 
-def _worker_batch(key: tuple[int, int, int], size: int, size_px: int) -> Batch:
-    return make_batch(_WORKER_POOL, np.random.default_rng(list(key)), size, size_px=size_px)
+def _worker_batch(key: tuple[int, int, int], size: int, size_px: int, jitter: float) -> Batch:
+    return make_batch(
+        _WORKER_POOL,
+        np.random.default_rng(list(key)),
+        size,
+        size_px=size_px,
+        observation_jitter=jitter,
+    )
 
 
 def _batches(
@@ -142,12 +154,19 @@ def _batches(
     size: int,
     size_px: int,
     workers: int,
+    jitter: float = 0.0,
 ) -> Iterator[Batch]:
     """The batches of ``keys`` (seed, epoch, step) in order; simulated ``workers`` processes
     ahead when ``workers`` > 0."""
     if workers <= 0:
         for key in keys:
-            yield make_batch(pool, np.random.default_rng(list(key)), size, size_px=size_px)
+            yield make_batch(
+                pool,
+                np.random.default_rng(list(key)),
+                size,
+                size_px=size_px,
+                observation_jitter=jitter,
+            )
         return
     ctx = multiprocessing.get_context("spawn")  # no fork of a process holding torch threads
     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
@@ -155,12 +174,12 @@ def _batches(
         ahead: collections.deque[Future[Batch]] = collections.deque()
         todo = iter(keys)
         for key in itertools.islice(todo, workers * _PREFETCH_PER_WORKER):
-            ahead.append(ex.submit(_worker_batch, key, size, size_px))
+            ahead.append(ex.submit(_worker_batch, key, size, size_px, jitter))
         while ahead:
             batch = ahead.popleft().result()
             nxt = next(todo, None)
             if nxt is not None:
-                ahead.append(ex.submit(_worker_batch, nxt, size, size_px))
+                ahead.append(ex.submit(_worker_batch, nxt, size, size_px, jitter))
             yield batch
 
 
@@ -216,6 +235,9 @@ def train(
         torch.manual_seed(options.seed)
         ckpt = Checkpoint(config=config, model=build_network(config), seed=options.seed)
     cfg = ckpt.config
+    if not 0.0 <= options.observation_jitter < 1.0:
+        msg = f"observation_jitter must be in [0, 1), got {options.observation_jitter!r}"
+        raise ValidationError(msg)
     if options.data_workers < 0:
         msg = f"data_workers must be >= 0, got {options.data_workers}"
         raise ValidationError(msg)
@@ -287,7 +309,9 @@ def train(
         ckpt.model.train()
         sums: dict[str, float] = {}
         keys = [(ckpt.seed, epoch, step) for step in range(steps)]
-        for b in _batches(pool, keys, batch, cfg.input_px, options.data_workers):
+        for b in _batches(
+            pool, keys, batch, cfg.input_px, options.data_workers, options.observation_jitter
+        ):
             with torch.autocast(device.type, dtype=torch.float16, enabled=amp):
                 front = ckpt.model(b.front.to(device, non_blocking=True))
                 back = ckpt.model(b.back.to(device, non_blocking=True))
@@ -310,6 +334,7 @@ def train(
         record = {k: v / steps for k, v in sums.items()}
         record["epoch"] = float(ckpt.epoch)
         record["lr"] = float(opt.param_groups[0]["lr"])
+        record["observation_jitter"] = float(options.observation_jitter)
         record["wall_s"] = time.monotonic() - t_start
         record["val_mpjpe_mm"] = _validate(ckpt.model, val, device)
         if val_corpus is not None:

@@ -28,6 +28,8 @@ from mocaprig.process.democap.evaluate import (
     evaluate,
     leave_one_activity_out,
     off_model,
+    perturbed,
+    trained_observation_jitter,
     unseen_real,
 )
 from mocaprig.process.democap.infer import DemocapPredictor
@@ -279,6 +281,27 @@ def test_training_takes_corpus_clips_and_validates_on_its_own_split(
 
 @needs_ckpt
 @pytest.mark.slow
+def test_perturbed_figures_say_where_their_scales_lie_against_training_jitter(
+    tiny_config: DemocapConfig,
+) -> None:
+    ck = Checkpoint(
+        config=tiny_config,
+        model=build_network(tiny_config),
+        history=[{"observation_jitter": 0.0}, {"observation_jitter": 0.3}],
+    )
+    assert trained_observation_jitter(ck) == pytest.approx(0.3)
+    pred = DemocapPredictor(ck, rotations=1, solve=False)
+    res = perturbed(pred, frames_per_take=1, scales=(0.5, 0.8), bodies=False)
+    notes = {r.label: r.note for r in res}
+    assert "[0.7, 1.3]" in notes["detection x0.5"]
+    assert "every moved scale lies outside it" in notes["detection x0.5"]
+    assert "inside it for detection" in notes["detection x0.8"]
+    assert "inside it for noise, occlusion, strays:" in notes["all harder"]
+    assert "inside it for detection:" in notes["all easier"]
+    plain = _untrained(tiny_config)
+    assert trained_observation_jitter(plain.checkpoint) == 0.0
+
+
 def test_cli_eval_perturbed_labels_each_figure(capsys: pytest.CaptureFixture[str]) -> None:
     # Only the labels and the budget are checked here, not the accuracy, so the network runs
     # alone: the solve would add a minute on these 84 frames (its figures: docs/democap.md).

@@ -19,12 +19,14 @@ from mocaprig.process.democap.checkpoint import (
 from mocaprig.process.democap.config import DemocapConfig
 from mocaprig.process.democap.dataset import (
     TRAIN_ACTIONS,
+    jittered_observation,
     make_batch,
     make_pool,
     make_sample,
     pool_from_bvh,
 )
 from mocaprig.process.democap.infer import DemocapPredictor
+from mocaprig.process.democap.simdata import NOMINAL_OBSERVATION, PERTURBATION_KNOBS
 from mocaprig.process.democap.train import TrainOptions, resolve_device, train
 from tests.process.body._body_helpers import motion_as_bvh
 
@@ -137,6 +139,48 @@ def test_batches_are_deterministic_and_normalised() -> None:
     torch.testing.assert_close(a.joints, b.joints)
     assert a.front.shape == (3, 1, 160, 160)
     assert 0.0 < float(a.joints.mean()) < 1.0
+
+
+def test_observation_jitter_gives_each_sample_its_own_d415_model() -> None:
+    pool = make_pool(0, "train", takes=2, seconds=1.0)
+    plain = make_batch(pool, np.random.default_rng(1), 4)
+    # jitter 0 is the nominal model and draws no numbers: the batches do not move
+    zero = make_batch(pool, np.random.default_rng(1), 4, observation_jitter=0.0)
+    torch.testing.assert_close(plain.front, zero.front)
+    a = make_batch(pool, np.random.default_rng(1), 4, observation_jitter=0.3)
+    b = make_batch(pool, np.random.default_rng(1), 4, observation_jitter=0.3)
+    torch.testing.assert_close(a.front, b.front)
+    assert not torch.equal(a.front, plain.front)
+    with pytest.raises(ValidationError, match="observation jitter must be in"):
+        make_batch(pool, np.random.default_rng(1), 1, observation_jitter=1.0)
+
+
+def test_jittered_observation_stays_in_its_range_and_moves_every_knob() -> None:
+    rng = np.random.default_rng(5)
+    state = rng.bit_generator.state
+    assert jittered_observation(rng, 0.0) is NOMINAL_OBSERVATION
+    assert rng.bit_generator.state == state
+    draws = [jittered_observation(rng, 0.25) for _ in range(200)]
+    for knob in PERTURBATION_KNOBS:
+        v = np.array([getattr(d, knob) for d in draws])
+        assert v.min() >= 0.75
+        assert v.max() <= 1.25
+        assert v.std() > 0.1
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValidationError, match="observation jitter"):
+            jittered_observation(rng, bad)
+
+
+def test_train_records_its_observation_jitter_and_refuses_a_bad_one(
+    tmp_path: Path, tiny_config: DemocapConfig
+) -> None:
+    out = tmp_path / "j.pt"
+    opts = TrainOptions(epochs=1, seed=3, takes=2, threads=1, observation_jitter=0.3)
+    ck = train(out, opts, config=tiny_config)
+    assert ck.history[-1]["observation_jitter"] == pytest.approx(0.3)
+    bad = TrainOptions(epochs=1, observation_jitter=-0.5)
+    with pytest.raises(ValidationError, match="observation_jitter must be in"):
+        train(tmp_path / "k.pt", bad, config=tiny_config)
 
 
 def test_train_and_test_pools_use_different_bodies() -> None:
