@@ -47,7 +47,7 @@ from mocaprig.process.democap.evaluate import evaluate, held_out_pool
 from mocaprig.process.democap.geometry import to_world_frame
 from mocaprig.process.democap.infer import DemocapPredictor, Prediction
 from mocaprig.process.democap.model import build_network
-from mocaprig.process.democap.simdata import Camera
+from mocaprig.process.democap.simdata import Box, Camera
 from mocaprig.process.democap.train import TrainOptions, train
 
 
@@ -65,6 +65,7 @@ class _MeanPose(DemocapPredictor):
         clouds: Sequence[npt.ArrayLike],
         *,
         views: Sequence[Sequence[Camera]] | None = None,  # no solve: nothing to tell it
+        crop_box_m: Box | None = None,
     ) -> list[Prediction]:
         out = []
         for c in clouds:

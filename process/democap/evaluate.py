@@ -72,6 +72,7 @@ from mocaprig.process.democap.dataset import (
 )
 from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.simdata import (
+    CAPTURE_BOX_M,
     NOMINAL_OBSERVATION,
     PERTURBATION_KNOBS,
     ObservationModel,
@@ -391,7 +392,10 @@ def evaluate(
         progress(0, len(clouds))
     for k in range(0, len(clouds), batch):
         # the rig is calibrated: the solve knows where the cameras look
-        for p in predictor.predict_many(clouds[k : k + batch], views=views[k : k + batch]):
+        # the simulated clouds are cropped to the capture box, as the replay's are
+        for p in predictor.predict_many(
+            clouds[k : k + batch], views=views[k : k + batch], crop_box_m=CAPTURE_BOX_M
+        ):
             pm.append(p.markers_m)
             pj.append(p.joints_m)
         if progress is not None:

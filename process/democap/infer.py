@@ -87,7 +87,7 @@ from mocaprig.process.democap.model import (
     view_keypoints,
 )
 from mocaprig.process.democap.pose_bank import BankSearch, PoseBank, bank_starts, load_pose_bank
-from mocaprig.process.democap.simdata import Camera
+from mocaprig.process.democap.simdata import Box, Camera, check_crop_box
 from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
 
@@ -426,28 +426,41 @@ class DemocapPredictor:
         mk: FloatArray,
         jt: FloatArray,
         views: Sequence[Sequence[Camera]] | None,
+        crop_box_m: Box | None = None,
     ) -> SolveResult:
-        """The solve of ``points`` (``views``: their cameras) from the turns' estimates
-        (K, B, ...): their combination, then each turn's (a single turn is the one start)."""
+        """The solve of ``points`` (``views``: their cameras, ``crop_box_m``: their crop) from
+        the turns' estimates (K, B, ...): their combination, then each turn's (a single turn
+        is the one start)."""
         markers, joints = self._combine(mk), self._combine(jt)
         hyp_m = markers[None] if len(mk) == 1 else np.concatenate([markers[None], mk])
         hyp_j = joints[None] if len(jt) == 1 else np.concatenate([joints[None], jt])
-        return solve_skeleton(points, hyp_m, hyp_j, options=self.solve_options, views=views)
+        return solve_skeleton(
+            points,
+            hyp_m,
+            hyp_j,
+            options=self.solve_options,
+            views=views,
+            crop_box_m=crop_box_m,
+        )
 
     def predict_many(
         self,
         clouds: Sequence[npt.ArrayLike],
         *,
         views: Sequence[Sequence[Camera]] | None = None,
+        crop_box_m: Box | None = None,
     ) -> list[Prediction]:
         """Several clouds: the network's estimates (:meth:`hypotheses`), then the skeleton
         solve from them when :attr:`solves`. ``views``: per cloud, the calibrated cameras
         that made it; the solve then does not charge a body part for being absent where no
         camera looks (:func:`solve.solve_skeleton`); the network does not use them.
+        ``crop_box_m`` (with ``views``): the world box the clouds were cropped to; a body part
+        outside it is not charged either.
 
         Raises:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
-                than 2 points; ``views`` not one camera list per cloud.
+                than 2 points; ``views`` not one camera list per cloud; a bad ``crop_box_m``
+                or one without ``views``.
         """
         if views is not None and len(views) != len(clouds):
             msg = (
@@ -455,6 +468,11 @@ class DemocapPredictor:
                 "list per cloud"
             )
             raise ValidationError(msg)
+        if crop_box_m is not None:
+            check_crop_box(crop_box_m)
+            if views is None:
+                msg = "crop_box_m needs views: the crop box is tested with the rig's cameras"
+                raise ValidationError(msg)
         points = _checked(clouds)
         if not points:
             return []
@@ -469,7 +487,7 @@ class DemocapPredictor:
         dense = np.flatnonzero(~sparse)
         if len(dense):
             sub, sub_views = _rows(points, views, dense)
-            sol.put(dense, self._solve(sub, mk[:, dense], jt[:, dense], sub_views))
+            sol.put(dense, self._solve(sub, mk[:, dense], jt[:, dense], sub_views, crop_box_m))
         few = np.flatnonzero(sparse)
         if len(few):
             sub, sub_views = _rows(points, views, few)
@@ -479,7 +497,7 @@ class DemocapPredictor:
                 timings[key] += v
             t3 += time.perf_counter() - t_net  # the network's time is not the solve's
             all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
-            sol.put(few, self._solve(sub, all_m, all_j, sub_views))
+            sol.put(few, self._solve(sub, all_m, all_j, sub_views, crop_box_m))
         sizes = np.array([len(p) for p in points])
         poor = np.flatnonzero(sol.energy / sizes > self.bank_search.energy_per_point)
         if self.pose_bank is not None and len(poor):
@@ -489,7 +507,9 @@ class DemocapPredictor:
             timings["bank_search_s"] = time.perf_counter() - t_bank
             # the bank already holds bent bodies: no bent copies of its starts
             opt = replace(self.solve_options, bend_starts_rad=())
-            banked = solve_skeleton(sub, bm, bj, options=opt, views=sub_views)
+            banked = solve_skeleton(
+                sub, bm, bj, options=opt, views=sub_views, crop_box_m=crop_box_m
+            )
             better = np.flatnonzero(banked.energy < sol.energy[poor])
             sol.put(poor[better], banked, better)
         t_again = time.perf_counter()
@@ -505,6 +525,7 @@ class DemocapPredictor:
                 sol.joints_m[todo][None],
                 options=self.solve_options,
                 views=sub_views,
+                crop_box_m=crop_box_m,
             )
             better = np.flatnonzero(again.energy < sol.energy[todo])
             sol.put(todo[better], again, better)

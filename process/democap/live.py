@@ -68,7 +68,7 @@ from mocaprig.calib.markers import (
 from mocaprig.errors import CalibrationError, ProcessingError, ValidationError
 from mocaprig.process.democap.checkpoint import Checkpoint
 from mocaprig.process.democap.infer import DemocapPredictor, Prediction
-from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Camera
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Box, Camera, check_crop_box
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
@@ -89,7 +89,6 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 F64 = npt.NDArray[np.float64]
-Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 # (ir, depth, metres per depth unit) of one camera, validated.
 _Pair = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint16], float]
 
@@ -140,9 +139,11 @@ class CloudPredictor(Protocol):
         clouds: Sequence[npt.ArrayLike],
         *,
         views: Sequence[Sequence[Camera]] | None = None,
+        crop_box_m: Box | None = None,
     ) -> list[Prediction]:
         """Fused world clouds ``(N, 3)`` (m) -> one :class:`Prediction` each; ``views``: per
-        cloud, the cameras whose frames made it (what the rig can see)."""
+        cloud, the cameras whose frames made it, and ``crop_box_m`` the box the points were
+        cropped to (what the rig can see)."""
         ...
 
 
@@ -419,16 +420,8 @@ class LivePipeline:
             msg = f"merge_radius_m must be a finite number > 0 (m), got {merge_radius_m!r}"
             raise ValidationError(msg)
         check_blob_options(threshold=threshold, min_area_px=min_area_px, max_area_px=max_area_px)
-        self._box: F64 | None = None
-        if crop_box_m is not None:
-            box = np.asarray(crop_box_m, dtype=np.float64)
-            if box.shape != (3, 2) or not np.all(np.isfinite(box)) or np.any(box[:, 0] > box[:, 1]):
-                msg = (
-                    "crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m with lo <= hi, "
-                    f"got {crop_box_m!r}"
-                )
-                raise ValidationError(msg)
-            self._box = box
+        self._box: F64 | None = None if crop_box_m is None else check_crop_box(crop_box_m)
+        self._crop_box_m = crop_box_m
         self.predictor = predictor
         self.cameras = cams
         self._views = tuple(c.view() for c in cams)
@@ -624,7 +617,9 @@ class LivePipeline:
         if m.cloud_m.shape[0] >= self.min_points:
             # the cameras that fed the cloud: a body part no one of them sees is not missing
             seen_by = [v for v, mf in zip(self._views, m.markers, strict=True) if mf is not None]
-            pred = self.predictor.predict_many([m.cloud_m], views=[seen_by])[0]
+            pred = self.predictor.predict_many(
+                [m.cloud_m], views=[seen_by], crop_box_m=self._crop_box_m
+            )[0]
             stages = getattr(self.predictor, "last_timings_s", None)
             if isinstance(stages, Mapping):
                 for k, v in stages.items():

@@ -89,7 +89,7 @@ from mocaprig.process.democap.instants import (
     group_instants,
 )
 from mocaprig.process.democap.live import LiveCamera, LivePipeline
-from mocaprig.process.democap.simdata import CAPTURE_BOX_M
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Box, check_crop_box
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
 from mocaprig.process.outputs import replace_atomically
 from mocaprig.process.scene import points_scene
@@ -138,8 +138,6 @@ METADATA_NAME: Final = "democap_replay"
 JOINT_LABEL_PREFIX: Final = "J_"
 #: The capture box of the training data (world, m): ``((x0, x1), (y0, y1), (z0, z1))``.
 DEFAULT_CROP_BOX_M: Final = CAPTURE_BOX_M
-
-Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 
 
 # ------------------------------------------------------------------------------ result
@@ -446,9 +444,8 @@ def _check_span_options(
     if isinstance(batch, bool) or int(batch) != batch or batch < 1:
         msg = f"batch must be an integer >= 1, got {batch!r}"
         raise ValidationError(msg)
-    if crop_box_m is not None and np.asarray(crop_box_m, dtype=np.float64).shape != (3, 2):
-        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m, got {crop_box_m!r}"
-        raise ValidationError(msg)
+    if crop_box_m is not None:
+        check_crop_box(crop_box_m)
     if predictor is not None and not predictor.predicts_markers:
         msg = (
             f"the checkpoint is a {predictor.checkpoint.config.variant!r} baseline, which "

@@ -78,9 +78,11 @@ from mocaprig.validation import check_shape
 __all__ = [
     "NOMINAL_OBSERVATION",
     "PERTURBATION_KNOBS",
+    "Box",
     "Camera",
     "ObservationModel",
     "PoseFrames",
+    "check_crop_box",
     "in_frustum",
     "in_frustum_torch",
     "merge_views",
@@ -180,8 +182,25 @@ DOT_GHOST_MAX_ANGLE_DEG = 60.0
 REFLECTORS_MEAN = 2.0
 #: Fusion: points closer than this merge (m), as in the replay.
 MERGE_RADIUS_M = 0.010
+#: A world box (m): ``((x0, x1), (y0, y1), (z0, z1))``.
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 #: Points outside this world box (m) are dropped before the merge (the replay's crop).
-CAPTURE_BOX_M = ((-2.2, 2.2), (-2.2, 2.2), (-0.1, 2.4))
+CAPTURE_BOX_M: Box = ((-2.2, 2.2), (-2.2, 2.2), (-0.1, 2.4))
+
+
+def check_crop_box(box: Box) -> FloatArray:
+    """The crop box as a (3, 2) array (world, m; low, high per axis).
+
+    Raises:
+        ValidationError: not three finite (low <= high) pairs.
+    """
+    arr = np.asarray(box, dtype=np.float64)
+    if arr.shape != (3, 2) or not np.all(np.isfinite(arr)) or np.any(arr[:, 0] > arr[:, 1]):
+        msg = f"crop_box_m must be ((x0, x1), (y0, y1), (z0, z1)) in m with lo <= hi, got {box!r}"
+        raise ValidationError(msg)
+    return arr
+
+
 #: Z_near − Z below which a marker counts as next to a nearer surface (m).
 _EDGE_ZNEAR_M = 0.010
 _KNOTS = np.array(DEPTH_BIAS_KNOTS_M, dtype=np.float64)

@@ -59,7 +59,7 @@ import functools
 import itertools
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -96,7 +96,7 @@ from mocaprig.process.body.skeleton import (
     PARENTS,
     ROOT_DIM,
 )
-from mocaprig.process.democap.simdata import Camera, in_frustum_torch
+from mocaprig.process.democap.simdata import Box, Camera, check_crop_box, in_frustum_torch
 from mocaprig.validation import check_finite, check_positive, check_shape
 
 __all__ = ["REFERENCE_HEIGHT_M", "SolveOptions", "SolveResult", "solve_skeleton"]
@@ -515,16 +515,18 @@ class _Data:
 
 @dataclass(frozen=True, slots=True)
 class _Views:
-    """Each problem's cameras, padded to the largest rig with cameras of focal 0."""
+    """Each problem's cameras, padded to the largest rig with cameras of focal 0, and the
+    crop box the clouds were cut to (one for every problem)."""
 
     centre: torch.Tensor  # (P, K, 3) world, m
     r_cw: torch.Tensor  # (P, K, 3, 3) world -> camera
     focal: torch.Tensor  # (P, K) px; 0 for a padded camera
     principal: torch.Tensor  # (P, K, 2) px
     size: torch.Tensor  # (P, K, 2) image width, height, px
+    box: torch.Tensor | None = None  # (3, 2) world, m: (low, high) per axis; None: no crop
 
     @staticmethod
-    def of(views: Sequence[Sequence[Camera]]) -> _Views:
+    def of(views: Sequence[Sequence[Camera]], box: Box | None = None) -> _Views:
         p_n, k = len(views), max((len(v) for v in views), default=0)
         c, r, f = np.zeros((p_n, k, 3)), np.tile(np.eye(3), (p_n, k, 1, 1)), np.zeros((p_n, k))
         pp, wh = np.zeros((p_n, k, 2)), np.zeros((p_n, k, 2))
@@ -532,17 +534,20 @@ class _Views:
             for j, cam in enumerate(v):
                 c[i, j], r[i, j], f[i, j] = cam.centre_m, cam.r_cw, cam.focal_px
                 pp[i, j], wh[i, j] = cam.principal_px, cam.size_px
-        return _Views(*(torch.from_numpy(a) for a in (c, r, f, pp, wh)))
+        crop = None if box is None else torch.tensor(box, dtype=torch.float64)
+        t = [torch.from_numpy(a) for a in (c, r, f, pp, wh)]
+        return _Views(t[0], t[1], t[2], t[3], t[4], crop)
 
     def rows(self, lo: int, hi: int) -> _Views:
-        return _Views(*(getattr(self, n)[lo:hi] for n in _VIEW_FIELDS))
+        return replace(self, **{n: getattr(self, n)[lo:hi] for n in _VIEW_FIELDS})
 
     def take(self, idx: npt.NDArray[np.intp]) -> _Views:
         i = torch.from_numpy(np.asarray(idx, np.int64))
-        return _Views(*(getattr(self, n)[i] for n in _VIEW_FIELDS))
+        return replace(self, **{n: getattr(self, n)[i] for n in _VIEW_FIELDS})
 
     def seen(self, pts: torch.Tensor) -> torch.Tensor:
-        """1.0 where a point (P, ..., 3) lies in some camera's view of its problem (P, ...)."""
+        """1.0 where a point (P, ..., 3) lies in some camera's view of its problem and inside
+        the crop box (P, ...)."""
         shape = pts.shape
         inside = in_frustum_torch(
             pts.reshape(shape[0], -1, 3),
@@ -551,8 +556,11 @@ class _Views:
             self.focal,
             principal_px=self.principal,
             size_px=self.size,
-        )
-        return inside.any(-1).to(pts.dtype).reshape(shape[:-1])
+        ).any(-1)
+        if self.box is not None:
+            flat = pts.reshape(shape[0], -1, 3)
+            inside &= ((flat >= self.box[:, 0]) & (flat <= self.box[:, 1])).all(-1)
+        return inside.to(pts.dtype).reshape(shape[:-1])
 
 
 _VIEW_FIELDS = ("centre", "r_cw", "focal", "principal", "size")
@@ -1009,6 +1017,7 @@ def solve_skeleton(
     *,
     options: SolveOptions | None = None,
     views: Sequence[Sequence[Camera]] | None = None,
+    crop_box_m: Box | None = None,
 ) -> SolveResult:
     """Fit the body model to each fused cloud from H hypotheses of the network (module doc).
 
@@ -1020,12 +1029,21 @@ def solve_skeleton(
         views: per cloud, the calibrated cameras that made it (the rig): a model marker
             outside every camera's view is not charged for having no point near it (hands
             over the head above the view's top edge). None: every marker counts as seen.
+        crop_box_m: with ``views``, the world box ``((x0, x1), (y0, y1), (z0, z1))`` (m) the
+            clouds were cropped to: a marker outside it is not charged either (no point of
+            it could have survived the crop). None: no crop.
 
     Raises:
         ValidationError: shapes that do not match, non-finite values, a cloud with fewer
-            than 2 points, or ``views`` not one entry per cloud.
+            than 2 points, ``views`` not one entry per cloud, or a ``crop_box_m`` that is not
+            three (low < high) pairs or comes without ``views``.
     """
     opt = options or SolveOptions()
+    if crop_box_m is not None:
+        check_crop_box(crop_box_m)
+        if views is None:
+            msg = "crop_box_m needs views: the crop box is tested with the rig's cameras"
+            raise ValidationError(msg)
     pts = [
         np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64) for c in clouds
     ]
@@ -1067,7 +1085,7 @@ def solve_skeleton(
     # only the ``keep_starts`` best of each frame go on (most starts end where another does).
     frames = np.tile(np.arange(n_b), n_h)
     flat_clouds = [pts[i] for i in frames]
-    rig = None if views is None else _Views.of(views)  # (B, K) cameras, once
+    rig = None if views is None else _Views.of(views, crop_box_m)  # (B, K) cameras, once
     flat_views = None if rig is None else rig.take(frames)
     flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
     steps = _schedule(opt)

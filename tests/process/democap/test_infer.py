@@ -225,6 +225,14 @@ def test_the_rig_views_reach_the_solve_of_each_cloud(tiny_config: DemocapConfig)
     assert not np.allclose(alone.joints_m, blind.joints_m, atol=1e-6)
     with pytest.raises(ValidationError, match="one camera list per cloud"):
         pred.predict_many([sparse, dense], views=[rig])
+    # a crop box below the whole body: nothing could have survived the crop, as with `far`
+    floor = ((-5.0, 5.0), (-5.0, 5.0), (-1.0, -0.5))
+    (cropped,) = pred.predict_many([sparse], views=[rig], crop_box_m=floor)
+    (plain,) = pred.predict_many([sparse], views=[rig])
+    np.testing.assert_allclose(cropped.joints_m, alone.joints_m, atol=1e-9)
+    assert not np.allclose(cropped.joints_m, plain.joints_m, atol=1e-6)
+    with pytest.raises(ValidationError, match="crop_box_m needs views"):
+        pred.predict_many([sparse], crop_box_m=floor)
 
 
 def test_the_pose_bank_finds_a_body_the_network_is_far_from(tiny_config: DemocapConfig) -> None:

@@ -211,24 +211,36 @@ def test_a_live_cameras_view_is_what_its_image_shows() -> None:
     np.testing.assert_array_equal(in_frustum(pts, [view])[0], want)
 
 
-def test_the_predictor_is_told_which_cameras_made_the_cloud(
+def test_the_predictor_is_told_which_cameras_made_the_cloud_and_its_crop(
     predictor: DemocapPredictor,
 ) -> None:
     cams = _cameras()
     frames = _frame_set(cams, seed=2)
     told: list[object] = []
+    crops: list[object] = []
 
     class Spy:
         def predict_many(
-            self, clouds: Sequence[npt.ArrayLike], *, views: object = None
+            self,
+            clouds: Sequence[npt.ArrayLike],
+            *,
+            views: object = None,
+            crop_box_m: object = None,
         ) -> list[Prediction]:
             told.append(views)
+            crops.append(crop_box_m)
             return predictor.predict_many(clouds)
 
     with LivePipeline(Spy(), cams) as pipe:
         pipe.process(frames)
         pipe.process([frames[0], None, frames[2]])
-    full, dropped = told
+    box = ((-1.0, 1.0), (-1.0, 1.0), (0.0, 2.0))
+    with LivePipeline(Spy(), cams, crop_box_m=box) as pipe:
+        pipe.process(frames)
+    with LivePipeline(Spy(), cams, crop_box_m=None) as pipe:
+        pipe.process(frames)
+    assert crops == [CAPTURE_BOX_M, CAPTURE_BOX_M, box, None]
+    full, dropped = told[:2]
 
     def centres(views: object) -> list[list[float]]:
         assert isinstance(views, list)
@@ -386,7 +398,11 @@ def test_errors_of_every_stage_propagate(
         calls = 0
 
         def predict_many(
-            self, clouds: Sequence[npt.ArrayLike], *, views: object = None
+            self,
+            clouds: Sequence[npt.ArrayLike],
+            *,
+            views: object = None,
+            crop_box_m: object = None,
         ) -> list[Prediction]:
             Failing.calls += 1
             if Failing.calls == 3:

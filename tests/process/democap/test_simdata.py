@@ -37,6 +37,7 @@ from mocaprig.process.democap.simdata import (
     SUBPIXEL_RMS_PX,
     Camera,
     PoseFrames,
+    check_crop_box,
     merge_views,
     observe,
     pose_frames,
@@ -397,3 +398,12 @@ def test_stray_points_per_view_match_the_measured(stats: Stats) -> None:
 def test_fused_cloud_size_matches_the_measured(stats: Stats) -> None:
     assert 112.0 <= stats.points_per_cloud <= 145.0  # measured 130.8
     assert 34.0 <= stats.unmerged_duplicates <= 50.0  # measured 42.0
+
+
+def test_check_crop_box_takes_three_ordered_pairs() -> None:
+    np.testing.assert_array_equal(check_crop_box(CAPTURE_BOX_M), np.asarray(CAPTURE_BOX_M))
+    for bad in (((0.0, 1.0), (0.0, 1.0)), ((1.0, 0.0), (0.0, 1.0), (0.0, 1.0))):
+        with pytest.raises(ValidationError, match="lo <= hi"):
+            check_crop_box(bad)  # type: ignore[arg-type]
+    with pytest.raises(ValidationError, match="crop_box_m"):
+        check_crop_box(((0.0, np.nan), (0.0, 1.0), (0.0, 1.0)))

@@ -322,6 +322,34 @@ def test_a_marker_no_camera_sees_is_not_charged_for_its_missing_point() -> None:
         S.solve_skeleton([cloud], est_m[None, None], est_j[None, None], views=[rig, rig])
 
 
+def test_a_marker_outside_the_crop_box_is_not_charged_either() -> None:
+    """A raised hand inside a camera's view but above the crop box's top has no point (the
+    pipeline dropped it): with the crop box the solve does not charge it for that."""
+    rng = np.random.default_rng(6)
+    rig = sample_rig(rng)
+    pts = rng.uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 2.4], (1, 300, 3))
+    box = ((-2.2, 2.2), (-2.2, 2.2), (-0.1, 1.5))
+    views = S._Views.of([rig])
+    cropped = S._Views.of([rig], box)
+    in_view = views.seen(torch.from_numpy(pts)).numpy()[0].astype(bool)
+    got = cropped.seen(torch.from_numpy(pts)).numpy()[0].astype(bool)
+    np.testing.assert_array_equal(got, in_view & (pts[0, :, 2] <= 1.5))
+    assert (in_view & (pts[0, :, 2] > 1.5)).sum() > 10  # the test has both
+    # the box survives the solve's row selections
+    assert cropped.rows(0, 1).box is not None
+    assert cropped.take(np.array([0, 0])).box is not None
+    _, mk, jt = _take(3)
+    m, j = mk[0], jt[0]
+    cloud = m[m[:, 2] <= 1.5]
+    est_m, est_j = m[None, None], j[None, None]
+    sol = S.solve_skeleton([cloud], est_m, est_j, views=[rig], crop_box_m=box)
+    assert _mpjpe_mm(sol.joints_m[0], j) < 15.0
+    with pytest.raises(ValidationError, match="crop_box_m needs views"):
+        S.solve_skeleton([cloud], est_m, est_j, crop_box_m=box)
+    with pytest.raises(ValidationError, match="lo <= hi"):
+        S.solve_skeleton([cloud], est_m, est_j, views=[rig], crop_box_m=((1, 0), (0, 1), (0, 1)))
+
+
 def test_bad_inputs_are_refused() -> None:
     _, mk, jt = _take(3)
     cloud = mk[0]
