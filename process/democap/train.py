@@ -138,14 +138,16 @@ def _init_worker(pool: list[PoseFrames]) -> None:
     torch.set_num_threads(1)  # in the worker process only: simulation is numpy work
 
 
+def _keyed_batch(
+    pool: list[PoseFrames], key: tuple[int, int, int], size: int, size_px: int, jitter: float
+) -> Batch:
+    """The batch of step ``key`` (seed, epoch, step): its own generator, wherever it is made."""
+    rng = np.random.default_rng(list(key))
+    return make_batch(pool, rng, size, size_px=size_px, observation_jitter=jitter)
+
+
 def _worker_batch(key: tuple[int, int, int], size: int, size_px: int, jitter: float) -> Batch:
-    return make_batch(
-        _WORKER_POOL,
-        np.random.default_rng(list(key)),
-        size,
-        size_px=size_px,
-        observation_jitter=jitter,
-    )
+    return _keyed_batch(_WORKER_POOL, key, size, size_px, jitter)
 
 
 def _batches(
@@ -160,13 +162,7 @@ def _batches(
     ahead when ``workers`` > 0."""
     if workers <= 0:
         for key in keys:
-            yield make_batch(
-                pool,
-                np.random.default_rng(list(key)),
-                size,
-                size_px=size_px,
-                observation_jitter=jitter,
-            )
+            yield _keyed_batch(pool, key, size, size_px, jitter)
         return
     ctx = multiprocessing.get_context("spawn")  # no fork of a process holding torch threads
     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
