@@ -73,6 +73,7 @@ __all__ = [
     "Batch",
     "Sample",
     "SubjectModel",
+    "check_observation_jitter",
     "jittered_observation",
     "make_batch",
     "make_pool",
@@ -449,9 +450,14 @@ class Batch:
     joints: torch.Tensor
 
 
-def _check_jitter(jitter: float) -> None:
+def check_observation_jitter(jitter: float, *, name: str = "observation jitter") -> None:
+    """Refuse an observation jitter outside [0, 1) (``name`` is how the error calls it).
+
+    Raises:
+        ValidationError: ``jitter`` outside [0, 1).
+    """
     if not 0.0 <= jitter < 1.0:
-        msg = f"observation jitter must be in [0, 1), got {jitter!r}"
+        msg = f"{name} must be in [0, 1), got {jitter!r}"
         raise ValidationError(msg)
 
 
@@ -462,7 +468,7 @@ def jittered_observation(rng: np.random.Generator, jitter: float) -> Observation
     Raises:
         ValidationError: ``jitter`` outside [0, 1).
     """
-    _check_jitter(jitter)
+    check_observation_jitter(jitter)
     if jitter == 0.0:
         return NOMINAL_OBSERVATION
     lo, hi = 1.0 - jitter, 1.0 + jitter
@@ -487,7 +493,7 @@ def make_batch(
         ProcessingError: :data:`_MAX_REDRAWS` draws in a row gave no usable cloud.
         ValidationError: ``observation_jitter`` outside [0, 1).
     """
-    _check_jitter(observation_jitter)
+    check_observation_jitter(observation_jitter)
     samples: list[Sample] = []
     misses = 0
     while len(samples) < size:

@@ -700,11 +700,11 @@ def trained_observation_jitter(checkpoint: Checkpoint) -> float:
 
 def _trained_range_note(model: ObservationModel, jitter: float) -> str:
     """Where a perturbation's scales lie against the range training drew them from."""
-    lo, hi = 1.0 - jitter, 1.0 + jitter
-    moved = {k: float(getattr(model, k)) for k in PERTURBATION_KNOBS if getattr(model, k) != 1.0}
     if jitter == 0.0:
         return "training saw the nominal D415 model only (every scale 1)"
-    inside = sorted(k for k, v in moved.items() if lo <= v <= hi)
+    lo, hi = 1.0 - jitter, 1.0 + jitter
+    moved = [k for k in PERTURBATION_KNOBS if getattr(model, k) != 1.0]
+    inside = sorted(k for k in moved if lo <= getattr(model, k) <= hi)
     where = (
         f"inside it for {', '.join(inside)}: not a model training never saw"
         if inside

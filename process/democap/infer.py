@@ -87,7 +87,7 @@ from mocaprig.process.democap.model import (
     view_keypoints,
 )
 from mocaprig.process.democap.pose_bank import BankSearch, PoseBank, bank_starts, load_pose_bank
-from mocaprig.process.democap.simdata import Box, Camera, check_crop_box
+from mocaprig.process.democap.simdata import Box, Camera
 from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
 from mocaprig.validation import check_finite, check_shape
 
@@ -459,8 +459,8 @@ class DemocapPredictor:
 
         Raises:
             ValidationError: a cloud of the wrong shape, with non-finite values or with fewer
-                than 2 points; ``views`` not one camera list per cloud; a bad ``crop_box_m``
-                or one without ``views``.
+                than 2 points; ``views`` not one camera list per cloud; when it solves, a bad
+                ``crop_box_m`` or one without ``views`` (:func:`solve.solve_skeleton` checks it).
         """
         if views is not None and len(views) != len(clouds):
             msg = (
@@ -468,11 +468,6 @@ class DemocapPredictor:
                 "list per cloud"
             )
             raise ValidationError(msg)
-        if crop_box_m is not None:
-            check_crop_box(crop_box_m)
-            if views is None:
-                msg = "crop_box_m needs views: the crop box is tested with the rig's cameras"
-                raise ValidationError(msg)
         points = _checked(clouds)
         if not points:
             return []

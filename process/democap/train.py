@@ -36,6 +36,7 @@ from mocaprig.process.democap.config import DemocapConfig
 from mocaprig.process.democap.corpus import corpus_pool
 from mocaprig.process.democap.dataset import (
     Batch,
+    check_observation_jitter,
     make_batch,
     make_pool,
     pool_from_bvh,
@@ -231,9 +232,7 @@ def train(
         torch.manual_seed(options.seed)
         ckpt = Checkpoint(config=config, model=build_network(config), seed=options.seed)
     cfg = ckpt.config
-    if not 0.0 <= options.observation_jitter < 1.0:
-        msg = f"observation_jitter must be in [0, 1), got {options.observation_jitter!r}"
-        raise ValidationError(msg)
+    check_observation_jitter(options.observation_jitter, name="observation_jitter")
     if options.data_workers < 0:
         msg = f"data_workers must be >= 0, got {options.data_workers}"
         raise ValidationError(msg)
