@@ -15,18 +15,20 @@ Configurations (:data:`LITE_CONFIGS`), each timed in rounds that interleave them
 is shared: a load change then hits all of them alike):
 
 * ``live``: :func:`mocaprig.process.democap.live.live_predictor`: the rotation ensemble of
-  ``LIVE_ROTATIONS`` (2) turns as two passes at once (``workers=2``: the second on the
-  predictor's own thread, kept across calls), in the default pipeline;
-* ``live-1thr``: the 2 turns in one batched network pass on the calling thread (``workers=1``:
-  the least CPU per set, the better choice when the second core is busy);
-* ``live-before``: the 2-turn ensemble as it ran before the turns were batched
-  (:class:`PerTurnPredictor`: one pass per turn, on a thread pool made per call): the
-  "before" figure, timed in the same run;
-* ``live-solve``: the live ensemble with the skeleton solve (``democap live --solve``);
+  ``LIVE_ROTATIONS`` (2) turns in one batched network pass on the calling thread, compiled
+  (``torch.compile``, the weights frozen; the compile happens on the first warm-up set and
+  is reported as ``first_set_s``), in the default pipeline;
+* ``live-2thr``: the same compiled, the 2 turns as two passes at once (``workers=2``: the
+  second on the predictor's own thread, kept across calls);
+* ``live-eager``: the live predictor before it was compiled (2 uncompiled passes at once,
+  ``workers=2``): the "before" figure, timed in the same run;
+* ``live-eager-1thr``: the 2 turns in one uncompiled batched pass (``workers=1``);
+* ``live-solve``: the uncompiled 2-turn ensemble with the skeleton solve (``democap live
+  --solve``);
 * ``offline``: ``DemocapPredictor()`` as shipped for offline use (``DEFAULT_ROTATIONS``, 3
   turns, one batched pass, then the skeleton solve from 4 starts);
 * ``offline-network``: the same without the solve (the network's own estimate);
-* ``single``: the paper's single shot (``rotations=1``, no solve).
+* ``single``: the paper's single shot (``rotations=1``, no solve, uncompiled).
 
 For each:
 
@@ -34,7 +36,7 @@ For each:
   and the throughput of that loop;
 * **pipelined throughput** (:meth:`LivePipeline.stream` over all the pre-rendered sets: the
   measurement of set k + 1 overlaps the network of set k): sets per second of wall time;
-* **paced at 30 Hz** (``live``, ``live-before`` and ``single``; the sets released on a 30 Hz
+* **paced at 30 Hz** (``live``, ``live-eager`` and ``single``; the sets released on a 30 Hz
   clock, the D415 rate): the latency from a set's release to its joints, and whether it keeps up.
 
 ``fps`` in the last line's JSON is the end-to-end throughput, 4 IR + depth frames -> world
@@ -65,7 +67,6 @@ import os
 import platform
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -274,36 +275,25 @@ def _table(rows: dict[str, dict[str, float]]) -> list[str]:
     return lines
 
 
-class PerTurnPredictor(DemocapPredictor):
-    """The network stage as it was before the turns were batched (the "before" of
-    docs/benchmarks.md, kept here to time it in the same run): one network pass per turn
-    (front/back batch of 2), the passes on a thread pool made for each call."""
-
-    def _network(
-        self, fronts: torch.Tensor, backs: torch.Tensor
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        views = list(zip(fronts, backs, strict=True))
-        if self.workers > 1 and len(views) > 1:
-            with ThreadPoolExecutor(min(self.workers, len(views))) as pool:
-                outs = list(pool.map(lambda v: self._pass(*v), views))
-        else:
-            outs = [self._pass(*v) for v in views]
-        return np.stack([o[0] for o in outs]), np.stack([o[1] for o in outs])
-
-
 #: The configurations timed: label -> (predictor from the checkpoint, pipeline workers). The
 #: first is :func:`~process.democap.live.live_predictor` in the default pipeline: the ``fps``
 #: figure.
 LITE_CONFIGS: dict[str, tuple[Callable[[Checkpoint], DemocapPredictor], int]] = {
     "live": (live_predictor, DEFAULT_WORKERS),
-    "live-1thr": (
-        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, solve=False, workers=1),
+    "live-2thr": (
+        lambda c: DemocapPredictor(
+            c, rotations=LIVE_ROTATIONS, solve=False, workers=LIVE_ROTATIONS, compile=True
+        ),
         DEFAULT_WORKERS,
     ),
-    "live-before": (
-        lambda c: PerTurnPredictor(
+    "live-eager": (
+        lambda c: DemocapPredictor(
             c, rotations=LIVE_ROTATIONS, solve=False, workers=LIVE_ROTATIONS
         ),
+        DEFAULT_WORKERS,
+    ),
+    "live-eager-1thr": (
+        lambda c: DemocapPredictor(c, rotations=LIVE_ROTATIONS, solve=False, workers=1),
         DEFAULT_WORKERS,
     ),
     "live-solve": (
@@ -322,8 +312,10 @@ PAPER_CONFIGS: dict[str, dict[str, Any]] = {
 
 def _describe(p: DemocapPredictor, workers: int) -> str:
     solve = " + skeleton solve" if p.solves else ""
+    compiled = ", compiled" if p.compiled else ""
     return (
-        f"{p.rotations} rotation(s) on {p.workers} thread(s){solve}, {workers} measuring thread(s)"
+        f"{p.rotations} rotation(s) on {p.workers} thread(s){compiled}{solve}, "
+        f"{workers} measuring thread(s)"
     )
 
 
@@ -348,8 +340,14 @@ def main() -> int:
 
     ckpt = load_checkpoint(DEFAULT_CHECKPOINT)
     configs: dict[str, tuple[DemocapPredictor, int]] = {}
+    first_s: dict[str, float] = {}
     for name, (make, w) in LITE_CONFIGS.items():
         configs[name] = (make(ckpt), w)
+        # the first set alone: a compiled predictor compiles here
+        with LivePipeline(configs[name][0], cameras_from_calibration(cal), workers=w) as pipe:
+            t0 = time.perf_counter()
+            pipe.process(warm[0])
+            first_s[name] = round(time.perf_counter() - t0, 2)
     seq: dict[str, list[LiveResult]] = {c: [] for c in configs}
     rounds: dict[str, list[Round]] = {c: [] for c in configs}
     for _ in range(args.rounds):
@@ -359,7 +357,7 @@ def main() -> int:
             rounds[name].append(rnd)
     live = {
         c: run_paced(configs[c][0], cal, sets, workers=configs[c][1])
-        for c in ("live", "live-before", "single")
+        for c in ("live", "live-eager", "single")
     }
     accuracy = {c: mpjpe(seq[c][: len(sets)], truth) for c in configs}
 
@@ -416,9 +414,11 @@ def main() -> int:
         "rounds": args.rounds,
         "fps": med("live", "stream_fps"),
         "target_fps": 36.0,
+        "compiled": configs["live"][0].compiled,
         "lite": {
             c: {
                 "config": _describe(pred, w),
+                "first_set_s": first_s[c],
                 "sequential_ms": stages[c],
                 "sequential_fps": med(c, "seq_fps"),
                 "sequential_cores_busy": med(c, "seq_cores"),

@@ -7,7 +7,7 @@ import io
 import os
 import shutil
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +19,19 @@ from mocaprig.drivers_mock.truth import Truth
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: The @mcap/core (TypeScript) reader the compatibility checks run (tests/compat/check.mjs).
 COMPAT = Path(__file__).resolve().parent / "compat"
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _compiler_cache_under_tmp(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """torch.compile (the live predictor) writes its caches under the session's temporary
+    folder, not the user's ``/tmp/torchinductor_*``."""
+    import torch._inductor.config as inductor
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path_factory.mktemp("inductor")))
+        # precompiled headers go to the default folder whatever the variable says
+        mp.setattr(inductor, "cpp_cache_precompile_headers", False)
+        yield
 
 
 @pytest.fixture

@@ -364,6 +364,12 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         help="with --solve: start it from the network's estimates only, not also from the "
         "committed bank of real poses",
     )
+    lv.add_argument(
+        "--no-compile",
+        action="store_true",
+        help="run the network uncompiled (by default it is compiled with torch.compile when "
+        "the first instant arrives, 10-30 s once, then about a quarter faster a pass)",
+    )
     _add_resolve_option(lv)
     add_json_flag(lv)
     lv.set_defaults(func=democap_live)
@@ -414,7 +420,8 @@ _LIVE_EPILOG = """\
 The D415s are configured (the first found is the sync master, the others slaves) and started;
 their frame sets are grouped into rig instants on the calibration's reference clock (the
 replay's rule) and run through the same pipeline as `democap run`: IR blobs + depth -> world ->
-10 mm merge -> the network (2-turn rotation ensemble by default, the live setting). A status
+10 mm merge -> the network (2-turn rotation ensemble by default, the live setting, compiled
+for this CPU while the first instant waits: 10-30 s, once; --no-compile skips it). A status
 line on stderr shows the rate, the cameras per instant and the latency. Results go into --out
 through the recorder (SceneUpdate on /democap/markers and /democap/joints; drops counted).
 
@@ -910,7 +917,7 @@ def democap_live(args: argparse.Namespace) -> int:
         solve=args.solve,
         pose_bank=not args.no_pose_bank,
         resolve_rounds=args.resolve_rounds,
-        workers=args.rotations,
+        compile=not args.no_compile,
     )
     if args.mock and args.seconds > args.world_seconds:
         msg = f"--seconds {args.seconds} exceeds the simulated session (--world-seconds)"

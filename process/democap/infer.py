@@ -18,6 +18,16 @@ convolution's batch norm folded into its weights, in channels-last memory layout
 function (outputs within float32 rounding), about a quarter less time on a CPU. The
 checkpoint's own model is left as it is (training and resuming use it).
 
+**Compiled network** (``compile=True``; off by default, on in the live predictor): the
+network stage (both views, CoM3D decoding and the fusion) runs through ``torch.compile``
+(inductor, the weights frozen as constants, a static shape): about a quarter less time a
+pass on the 2-core CPU (docs/democap.md, "Speed"), the estimates the same to float
+rounding. The first pass compiles it for its batch size, 10-30 s (a C++ compiler is
+needed; inductor caches the result on disk, ``TORCHINDUCTOR_CACHE_DIR``); passes of any
+other size run uncompiled, so that a live stream never stalls on a second compile (a
+sparse cloud's further turns with the solve). Where compiling fails the predictor logs why
+and runs the network as it is.
+
 **Skeleton solve** (``solve=True``, the default): the body model is fitted to the cloud
 from the ensemble's estimate and from each turn's (:mod:`.solve`); the fit that explains the
 cloud best gives the markers and joints, and the solved pose and height come with them. With
@@ -58,11 +68,12 @@ small ``lite`` network; the estimates are the same, bit for bit on the machine h
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import threading
 import time
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -180,6 +191,62 @@ def _checked(clouds: Sequence[npt.ArrayLike]) -> list[FloatArray]:
     ]
 
 
+_Decode = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+class _CompiledDecode:
+    """:func:`decode` of one network through ``torch.compile`` for the first batch shape it
+    is called with (module doc, "Compiled network"); any other shape runs uncompiled (a
+    second compile would stall a live stream for seconds), as does everything once
+    compiling has failed."""
+
+    def __init__(self, net: DemocapModel) -> None:
+        self._eager: _Decode = functools.partial(decode, net)
+        # freezing: the weights become constants (folded, pre-packed for the CPU); one
+        # compile thread: no worker processes spawned behind the caller's back
+        self._compiled: _Decode = torch.compile(
+            self._eager, dynamic=False, options={"freezing": True, "compile_threads": 1}
+        )
+        self._lock = threading.Lock()
+        #: the batch shape compiled for (front and back views); None until the first call
+        self.shape: tuple[int, ...] | None = None
+        #: why compiling failed (the network then runs as it is); None while it works
+        self.failure: str | None = None
+
+    def __call__(
+        self, front: torch.Tensor, back: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        key = (*front.shape, *back.shape)
+        if self.shape is None and self.failure is None:
+            with self._lock:  # one thread compiles; a second one waits for it
+                if self.shape is None and self.failure is None:
+                    return self._first(key, front, back)
+        if key == self.shape and self.failure is None:
+            return self._compiled(front, back)
+        return self._eager(front, back)
+
+    def _first(
+        self, key: tuple[int, ...], front: torch.Tensor, back: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        t0 = time.perf_counter()
+        _log.info("compiling the DeMoCap network for batches of %d views (once)", key[0] * 2)
+        try:
+            out = self._compiled(front, back)
+        # Any failure of the compiler stack (no C++ compiler, an unsupported CPU or
+        # platform) leaves the network itself working: run it as it is.
+        except Exception as err:
+            self.failure = f"{type(err).__name__}: {err}".splitlines()[0]
+            _log.warning(
+                "torch.compile of the DeMoCap network failed (%s); it runs uncompiled "
+                "(slower: see docs/democap.md, 'Speed')",
+                self.failure,
+            )
+            return self._eager(front, back)
+        self.shape = key
+        _log.info("compiled in %.1f s", time.perf_counter() - t0)
+        return out
+
+
 def _inference_copy(net: DemocapModel) -> DemocapModel:
     """A copy of ``net`` (eval mode) with each Conv2d -> BatchNorm2d pair of a Sequential
     folded into one convolution (the batch norm removed), in channels-last layout."""
@@ -206,6 +273,9 @@ class DemocapPredictor:
             (the fastest: live use at a high frame rate).
         combine: how the K estimates are combined per coordinate.
         optimise: run the folded, channels-last inference copy of the network (module doc).
+        compile: run the network stage through ``torch.compile`` (module doc, "Compiled
+            network"): a quarter faster after 10-30 s of compiling, for passes of the first
+            pass's batch size; for a process that runs many passes of one size (live use).
         solve: fit the body model to the cloud from the network's estimates (module doc);
             ignored for a network without markers (the ``"pose"`` baseline).
         solve_options: the solve's weights and schedule (default :class:`SolveOptions`).
@@ -245,6 +315,7 @@ class DemocapPredictor:
         rotations: int = DEFAULT_ROTATIONS,
         combine: Combine = "median",
         optimise: bool = True,
+        compile: bool = False,
         solve: bool = True,
         solve_options: SolveOptions | None = None,
         sparse_rotations: int | None = SPARSE_ROTATIONS,
@@ -287,6 +358,12 @@ class DemocapPredictor:
         self.net = ckpt.model.eval()
         self._run_net: DemocapModel = _inference_copy(self.net) if optimise else self.net
         self._channels_last = optimise
+        self._compiled = _CompiledDecode(self._run_net) if compile else None
+        self._decode: _Decode = (
+            self._compiled
+            if self._compiled is not None
+            else functools.partial(decode, self._run_net)
+        )
         self.size_px = ckpt.config.input_px
         #: size of the rotation ensemble (1: single shot)
         self.rotations = len(self._turns)
@@ -309,6 +386,12 @@ class DemocapPredictor:
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 
+    @property
+    def compiled(self) -> bool:
+        """Whether the network stage runs compiled: ``compile=True`` and no compiling has
+        failed so far (module doc, "Compiled network")."""
+        return self._compiled is not None and self._compiled.failure is None
+
     def predict(self, raw_m: npt.ArrayLike) -> Prediction:
         """One fused cloud (N, 3), world, m -> :class:`Prediction`.
 
@@ -323,7 +406,7 @@ class DemocapPredictor:
             front = front.contiguous(memory_format=torch.channels_last)
             back = back.contiguous(memory_format=torch.channels_last)
         with torch.inference_mode():
-            m, j = decode(self._run_net, front, back)
+            m, j = self._decode(front, back)
         return m.double().numpy(), j.double().numpy()
 
     def _network(self, fronts: torch.Tensor, backs: torch.Tensor) -> tuple[FloatArray, FloatArray]:

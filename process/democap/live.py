@@ -100,7 +100,7 @@ DEFAULT_MERGE_RADIUS_M: Final = 0.010
 #: only where a core is idle).
 DEFAULT_WORKERS: Final = 1
 #: Rotation-ensemble size for live use (:func:`live_predictor`): two turns, both in one
-#: batched network pass, keep a 2-core machine above 30 fps (the offline default,
+#: batched, compiled network pass, keep a 2-core machine above 36 fps (the offline default,
 #: :data:`~mocaprig.process.democap.infer.DEFAULT_ROTATIONS`, does not: docs/democap.md, "Speed").
 LIVE_ROTATIONS: Final = 2
 #: How long closing a stream waits for its producer thread (s) before leaving it behind.
@@ -148,23 +148,24 @@ class CloudPredictor(Protocol):
 
 
 def live_predictor(
-    checkpoint: Checkpoint | None = None, *, rotations: int = LIVE_ROTATIONS
+    checkpoint: Checkpoint | None = None,
+    *,
+    rotations: int = LIVE_ROTATIONS,
+    compile: bool = True,
 ) -> DemocapPredictor:
-    """The predictor for live use: :data:`LIVE_ROTATIONS` turns as two network passes at once
-    (``workers`` = 2: the first turn on the calling thread, the second on the predictor's own
-    thread), the network's estimates without the skeleton solve (its cost is an offline
-    one). On an idle 2-core machine this is the fastest live setting (37 fps end to end
-    against 34 for the turns batched on one thread, in one run); on a machine whose second
-    core is busy, ``DemocapPredictor(rotations=2, workers=1)`` (one batched pass) does less
-    work per set (docs/democap.md, "Speed"). ``checkpoint`` None is the committed ``lite`` one.
+    """The predictor for live use: :data:`LIVE_ROTATIONS` turns in one batched network pass
+    on the calling thread, compiled (``compile``; the first set waits 10-30 s for it), the
+    network's estimates without the skeleton solve (its cost is an offline one). On the
+    2-core machine this is the fastest live setting and the least CPU a set: 48.7 fps end to
+    end against 40.1 for the uncompiled turns as two passes at once (the setting before), in
+    one run (docs/democap.md, "Speed"); the other core measures the next set.
+    ``checkpoint`` None is the committed ``lite`` one.
 
     Raises:
         ProcessingError: the checkpoint is missing or does not match.
         ValidationError: ``rotations`` < 1.
     """
-    return DemocapPredictor(
-        checkpoint, rotations=rotations, solve=False, workers=min(2, max(1, rotations))
-    )
+    return DemocapPredictor(checkpoint, rotations=rotations, solve=False, compile=compile)
 
 
 # ------------------------------------------------------------------------------ cameras

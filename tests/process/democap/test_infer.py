@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 from collections.abc import Callable
 
@@ -140,6 +141,49 @@ def test_inference_copy_matches_the_network_and_leaves_it_untouched(
     for k, v in ck.model.state_dict().items():
         torch.testing.assert_close(v, before[k])
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in ck.model.modules())
+
+
+def test_compiled_network_gives_the_uncompiled_estimates_and_leaves_the_network_untouched(
+    tiny_config: DemocapConfig,
+) -> None:
+    ck = _checkpoint(tiny_config)
+    before = {k: v.clone() for k, v in ck.model.state_dict().items()}
+    clouds = [_cloud(), _cloud()[::2]]
+    plain = DemocapPredictor(ck, rotations=2, solve=False)
+    fast = DemocapPredictor(ck, rotations=2, solve=False, compile=True)
+    assert fast.compiled
+    assert not plain.compiled
+    # the first call compiles for its batch, the second runs it; one cloud: another batch
+    # size, run uncompiled
+    for batch in (clouds, clouds, clouds[:1]):
+        for a, b in zip(plain.predict_many(batch), fast.predict_many(batch), strict=True):
+            np.testing.assert_allclose(b.joints_m, a.joints_m, atol=1e-5)
+            np.testing.assert_allclose(b.markers_m, a.markers_m, atol=1e-5)
+    assert fast.compiled
+    for k, v in ck.model.state_dict().items():
+        torch.testing.assert_close(v, before[k])
+
+
+def test_a_compiler_that_fails_leaves_the_network_running_uncompiled(
+    tiny_config: DemocapConfig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def no_compiler(fn: object, **_: object) -> Callable[..., object]:
+        def run(*_a: object) -> object:
+            raise RuntimeError("no C++ compiler found\n(details)")
+
+        return run
+
+    monkeypatch.setattr(torch, "compile", no_compiler)
+    ck = _checkpoint(tiny_config)
+    pred = DemocapPredictor(ck, rotations=2, solve=False, compile=True)
+    with caplog.at_level(logging.WARNING, logger="mocaprig.process.democap.infer"):
+        got = pred.predict_many([_cloud()])
+        again = pred.predict_many([_cloud()])  # not tried again: once is enough to know
+    assert not pred.compiled
+    assert [r.getMessage().count("no C++ compiler found") for r in caplog.records] == [1]
+    want = DemocapPredictor(ck, rotations=2, solve=False).predict_many([_cloud()])
+    for g in (got, again):
+        np.testing.assert_array_equal(g[0].joints_m, want[0].joints_m)
 
 
 def test_bad_options_are_refused(tiny_config: DemocapConfig) -> None:

@@ -440,14 +440,16 @@ def test_errors_of_every_stage_propagate(
     assert _live_threads() == []
 
 
-def test_live_predictor_runs_its_two_turns_as_two_passes_at_once(
+def test_live_predictor_runs_its_two_turns_in_one_compiled_pass(
     tiny_config: DemocapConfig,
 ) -> None:
     ck = Checkpoint(tiny_config, DemocapNet(tiny_config).eval())
     pred = live_predictor(ck)
     assert pred.rotations == LIVE_ROTATIONS == 2
-    assert pred.workers == 2
-    single = live_predictor(ck, rotations=1)
-    assert (single.rotations, single.workers) == (1, 1)
+    assert pred.workers == 1
+    assert pred.compiled  # asked for; compiling waits for the first pass
+    assert not pred.solves
+    single = live_predictor(ck, rotations=1, compile=False)
+    assert (single.rotations, single.workers, single.compiled) == (1, 1, False)
     with pytest.raises(ValidationError, match="rotations"):
         live_predictor(ck, rotations=0)
