@@ -368,7 +368,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         "--no-compile",
         action="store_true",
         help="run the network uncompiled (by default it is compiled with torch.compile when "
-        "the first instant arrives, 10-30 s once, then about a quarter faster a pass)",
+        "the cameras start, 10-30 s once, then about a quarter faster a pass)",
     )
     _add_resolve_option(lv)
     add_json_flag(lv)
@@ -421,7 +421,7 @@ The D415s are configured (the first found is the sync master, the others slaves)
 their frame sets are grouped into rig instants on the calibration's reference clock (the
 replay's rule) and run through the same pipeline as `democap run`: IR blobs + depth -> world ->
 10 mm merge -> the network (2-turn rotation ensemble by default, the live setting, compiled
-for this CPU while the first instant waits: 10-30 s, once; --no-compile skips it). A status
+for this CPU before the cameras start: 10-30 s, once; --no-compile skips it). A status
 line on stderr shows the rate, the cameras per instant and the latency. Results go into --out
 through the recorder (SceneUpdate on /democap/markers and /democap/joints; drops counted).
 
@@ -957,6 +957,8 @@ def democap_live(args: argparse.Namespace) -> int:
         f"{len(summary.cameras)} cameras, {summary.instants} instants in {summary.wall_s:.1f} s "
         f"({summary.fps:.1f} /s), {summary.predicted} with joints, latency p50 {lat}"
     )
+    if summary.compiled:
+        print(f"  network compiled before the start ({summary.warm_up_s:.1f} s)")
     if summary.out is not None:
         print(f"  mcap -> {summary.out} ({summary.drops} dropped)")
     return 0

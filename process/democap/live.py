@@ -132,7 +132,8 @@ def _check_serial(camera: str, serial: str) -> None:
 class CloudPredictor(Protocol):
     """What the pipeline needs of a predictor (:class:`~process.democap.infer.DemocapPredictor`
     is one); an attribute ``last_timings_s`` (stage -> s), when present, is read after each
-    call."""
+    call, and a method ``warm_up()`` (-> s), when present, is called by live capture before
+    the cameras start."""
 
     def predict_many(
         self,
@@ -154,7 +155,8 @@ def live_predictor(
     compile: bool = True,
 ) -> DemocapPredictor:
     """The predictor for live use: :data:`LIVE_ROTATIONS` turns in one batched network pass
-    on the calling thread, compiled (``compile``; the first set waits 10-30 s for it), the
+    on the calling thread, compiled (``compile``; 10-30 s on the first pass, which
+    :meth:`~.infer.DemocapPredictor.warm_up` makes before the cameras start), the
     network's estimates without the skeleton solve (its cost is an offline one). On the
     2-core machine this is the fastest live setting and the least CPU a set: 48.7 fps end to
     end against 40.1 for the uncompiled turns as two passes at once (the setting before), in

@@ -91,6 +91,10 @@ class LiveSummary:
     latency_ms_p50: float | None
     out: Path | None
     drops: int | None
+    #: seconds the predictor's warm-up took before the cameras started (the compile)
+    warm_up_s: float = 0.0
+    #: whether the network ran compiled (None: a predictor that does not say)
+    compiled: bool | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -104,6 +108,8 @@ class LiveSummary:
             "latency_ms_p50": self.latency_ms_p50,
             "out": None if self.out is None else str(self.out),
             "drops": self.drops,
+            "warm_up_s": self.warm_up_s,
+            "compiled": self.compiled,
         }
 
 
@@ -200,6 +206,11 @@ def run_live(
             )
         )
     pred = live_predictor() if predictor is None else predictor
+    # a compiled network compiles here, before the cameras stream (seconds, once)
+    warm_up = getattr(pred, "warm_up", None)
+    warm_up_s = float(warm_up()) if callable(warm_up) else 0.0
+    if warm_up_s > 1.0:
+        _log.info("the predictor warmed up in %.1f s (the network compiled)", warm_up_s)
     counts: dict[str, int] = {}
     latencies: list[float] = []
     instants = predicted = 0
@@ -274,6 +285,8 @@ def run_live(
         latency_ms_p50=float(np.median(latencies)) if latencies else None,
         out=None if out is None else Path(out),
         drops=drops,
+        warm_up_s=warm_up_s,
+        compiled=getattr(pred, "compiled", None),
     )
 
 
@@ -295,4 +308,5 @@ def _metadata(
         "world_frame": calibration.world_frame,
         "checkpoint": "" if ck is None else f"{ck.config.name} ({ck.epoch} epochs)",
         "rotations": str(getattr(predictor, "rotations", "")),
+        "compiled": str(getattr(predictor, "compiled", "")),
     }

@@ -78,6 +78,9 @@ def test_live_run_on_the_mock_rig_records_joints_near_the_truth(
     with Recording(out) as rec:
         assert "calibration.toml" in [a.name for a in rec.attachments()]
         assert rec.metadata()["democap_live"]["cameras"].count("d415/") == 4
+        # this predictor runs uncompiled, and the run and its file say so
+        assert rec.metadata()["democap_live"]["compiled"] == "False"
+    assert summary.compiled is False
     # One path: the replay of the recording of the same world gives the same instants and joints.
     replay = run_replay(cs.session, cs.calib, out=tmp_path / "replay.mcap", predictor=predictor)
     k = np.searchsorted(replay.t_ref_ns, t)

@@ -164,6 +164,21 @@ def test_compiled_network_gives_the_uncompiled_estimates_and_leaves_the_network_
         torch.testing.assert_close(v, before[k])
 
 
+def test_warm_up_compiles_for_the_one_cloud_batches_of_a_live_stream(
+    tiny_config: DemocapConfig, caplog: pytest.LogCaptureFixture
+) -> None:
+    pred = DemocapPredictor(_checkpoint(tiny_config), rotations=2, solve=False, compile=True)
+    with caplog.at_level(logging.INFO, logger="mocaprig.process.democap.infer"):
+        assert pred.warm_up() > 0.0
+        compiled_at_warm_up = len(caplog.records)
+        pred.predict(_cloud())
+        pred.predict(_cloud()[::2])
+    messages = [r.getMessage() for r in caplog.records]
+    assert sum("compiling the DeMoCap network" in m for m in messages) == 1
+    assert compiled_at_warm_up == len(messages)  # the live clouds compiled nothing more
+    assert pred.compiled
+
+
 def test_a_compiler_that_fails_leaves_the_network_running_uncompiled(
     tiny_config: DemocapConfig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
