@@ -424,6 +424,8 @@ replay's rule) and run through the same pipeline as `democap run`: IR blobs + de
 for this CPU before the cameras start: 10-30 s, once; --no-compile skips it). A status
 line on stderr shows the rate, the cameras per instant and the latency. Results go into --out
 through the recorder (SceneUpdate on /democap/markers and /democap/joints; drops counted).
+When the network is slower than the cameras (--solve) the oldest waiting instant is skipped
+for the newest, so the joints stay current; each skip is counted and logged in the file.
 
 With --mock the cameras are the simulated rig (seed --seed, scenario --scenario): use the
 calibration of a simulated session of the same seed and length, e.g. `mocaprig demo` (seed 0,
@@ -877,17 +879,19 @@ class _LiveStatus:
         self._line = StatusLine(enabled=enabled)
         self._t0 = time.monotonic()
         self._n = 0
+        self._skipped = 0
 
     def __call__(self, res: Any, inst: Any) -> None:
         self._n += 1
-        if not self._line.due():
+        self._skipped += bool(res.skipped)
+        if res.skipped or not self._line.due():
             return
         elapsed = time.monotonic() - self._t0
         seen = sum(f is not None for f in inst.frames.values())
         self._line.show(
             f"live {elapsed:6.1f} s  {self._n} instants  {self._n / max(elapsed, 1e-9):5.1f} /s  "
             f"cameras {seen}/{len(inst.frames)}  points {res.points:3d}  "
-            f"latency {res.timings_ms['latency_ms']:4.0f} ms"
+            f"latency {res.timings_ms['latency_ms']:4.0f} ms  skipped {self._skipped}"
         )
 
     def close(self) -> None:
@@ -957,6 +961,8 @@ def democap_live(args: argparse.Namespace) -> int:
         f"{len(summary.cameras)} cameras, {summary.instants} instants in {summary.wall_s:.1f} s "
         f"({summary.fps:.1f} /s), {summary.predicted} with joints, latency p50 {lat}"
     )
+    if summary.skipped:
+        print(f"  {summary.skipped} instants skipped: the network was behind the cameras")
     if summary.compiled:
         print(f"  network compiled before the start ({summary.warm_up_s:.1f} s)")
     if summary.out is not None:

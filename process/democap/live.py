@@ -39,6 +39,7 @@ Units: metres (world frame of the cameras' ``T_world_cam``), milliseconds for ti
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -324,7 +325,10 @@ class LiveResult:
             its own stages (``render_ms``, ``network_ms``, ``decode_ms``... from its
             ``last_timings_s``), ``total_ms`` (measure + merge + predict: the work on this
             set) and ``latency_ms`` (from the start of its measurement to the result, waits
-            for the network in :meth:`LivePipeline.stream` included).
+            for the network in :meth:`LivePipeline.stream` included); empty for a skipped set.
+        skipped: The set was measured but never reached the network: a newer one replaced it
+            while the network was behind (:meth:`LivePipeline.stream` with ``keep_up``); no
+            prediction, an empty cloud, no markers.
     """
 
     index: int
@@ -332,6 +336,7 @@ class LiveResult:
     cloud_m: F64 = field(repr=False)
     markers: tuple[MarkerFrame | None, ...] = field(repr=False)
     timings_ms: Mapping[str, float] = field(default_factory=dict)
+    skipped: bool = False
 
     @property
     def cameras_used(self) -> int:
@@ -662,7 +667,9 @@ class LivePipeline:
         self._check_open()
         return self._predict(self._measure(frames, 0))
 
-    def stream(self, frame_sets: Iterable[RigFrames]) -> Iterator[LiveResult]:
+    def stream(
+        self, frame_sets: Iterable[RigFrames], *, keep_up: bool = False
+    ) -> Iterator[LiveResult]:
         """Frame sets -> their :class:`LiveResult`, in order, as a two-stage pipeline.
 
         A producer thread takes the sets from ``frame_sets`` and measures + merges them
@@ -673,14 +680,26 @@ class LivePipeline:
         the iteration early (``break``, ``close()``, an error) stops the producer after
         the set it is on.
 
+        ``keep_up`` (live cameras): the producer never waits for the network. When
+        ``queue_size`` measured sets are waiting, the oldest is dropped for the newest, so
+        the network always runs on the latest sets and the latency stays bounded when it is
+        slower than the cameras; each dropped set still comes out, in its place, as a
+        result with ``skipped`` set (nothing is lost silently). Off (the default, a
+        recording's replay): every set is predicted and the producer waits.
+
         Raises:
             ValidationError: as :meth:`process`, for the set at fault.
             ProcessingError: the pipeline is closed.
         """
         self._check_open()
-        return self._stream(iter(frame_sets))
+        return self._stream(iter(frame_sets), keep_up=keep_up)
 
-    def _stream(self, source: Iterator[RigFrames]) -> Iterator[LiveResult]:
+    def _skipped(self, index: int) -> LiveResult:
+        return LiveResult(
+            index, None, np.zeros((0, 3)), (None,) * len(self.cameras), {}, skipped=True
+        )
+
+    def _stream(self, source: Iterator[RigFrames], *, keep_up: bool) -> Iterator[LiveResult]:
         q: queue.Queue[object] = queue.Queue(maxsize=self.queue_size)
         stop = threading.Event()
         with self._lock:
@@ -698,6 +717,17 @@ class LivePipeline:
                 return True
             return False
 
+        def put_newest(item: _Measured) -> None:
+            # the oldest waiting set gives way; the consumer sees the gap in the indices
+            while True:
+                try:
+                    q.put_nowait(item)
+                except queue.Full:
+                    with contextlib.suppress(queue.Empty):
+                        q.get_nowait()
+                    continue
+                return
+
         def produce() -> None:
             index = 0
             try:
@@ -706,7 +736,10 @@ class LivePipeline:
                         frames = next(source)
                     except StopIteration:
                         break
-                    if not put(self._measure(frames, index)):
+                    measured = self._measure(frames, index)
+                    if keep_up:
+                        put_newest(measured)
+                    elif not put(measured):
                         return
                     index += 1
                 put(_END)
@@ -715,6 +748,7 @@ class LivePipeline:
 
         worker = threading.Thread(target=produce, name="democap-live-measure", daemon=True)
         worker.start()
+        expected = 0
         try:
             while True:
                 try:
@@ -728,7 +762,12 @@ class LivePipeline:
                     return
                 if isinstance(item, _Failure):
                     raise item.error
-                yield self._predict(cast(_Measured, item))
+                measured = cast(_Measured, item)
+                while expected < measured.index:  # sets dropped to keep up (keep_up)
+                    yield self._skipped(expected)
+                    expected += 1
+                expected = measured.index + 1
+                yield self._predict(measured)
         finally:
             stop.set()
             while True:  # unblock a producer waiting on a full queue

@@ -91,6 +91,9 @@ class LiveSummary:
     latency_ms_p50: float | None
     out: Path | None
     drops: int | None
+    #: instants measured but skipped to keep up with the cameras (the network was behind;
+    #: each is logged in the results file's ``/log``)
+    skipped: int = 0
     #: seconds the predictor's warm-up took before the cameras started (the compile)
     warm_up_s: float = 0.0
     #: whether the network ran compiled (None: a predictor that does not say)
@@ -108,6 +111,7 @@ class LiveSummary:
             "latency_ms_p50": self.latency_ms_p50,
             "out": None if self.out is None else str(self.out),
             "drops": self.drops,
+            "skipped": self.skipped,
             "warm_up_s": self.warm_up_s,
             "compiled": self.compiled,
         }
@@ -213,7 +217,7 @@ def run_live(
         _log.info("the predictor warmed up in %.1f s (the network compiled)", warm_up_s)
     counts: dict[str, int] = {}
     latencies: list[float] = []
-    instants = predicted = 0
+    instants = predicted = skipped = 0
     drops: int | None = None
     t_start = time.monotonic()
     with contextlib.ExitStack() as stack:
@@ -249,10 +253,20 @@ def run_live(
                 yield inst.frames
 
         pipeline = stack.enter_context(LivePipeline(pred, live_cams, workers=1))
-        for res in pipeline.stream(frames()):
+        # keep_up: a network slower than the cameras skips sets rather than falling behind
+        for res in pipeline.stream(frames(), keep_up=True):
             inst = pending.popleft()
             instants += 1
-            latencies.append(res.timings_ms["latency_ms"])
+            if res.skipped:
+                skipped += 1
+                if recorder is not None:
+                    recorder.log(
+                        "WARNING",
+                        f"instant {inst.t_ref_ns} ns skipped: the network was behind the cameras",
+                        name="democap_live",
+                    )
+            else:
+                latencies.append(res.timings_ms["latency_ms"])
             if res.prediction is not None:
                 predicted += 1
                 if recorder is not None:
@@ -274,6 +288,10 @@ def run_live(
         if recorder is not None:
             drops = recorder.status().dropped_total
     wall = time.monotonic() - t_start
+    if skipped:
+        _log.warning(
+            "%d of %d instants skipped: the network was behind the cameras", skipped, instants
+        )
     return LiveSummary(
         cameras=labels,
         seconds=float(seconds),
@@ -285,6 +303,7 @@ def run_live(
         latency_ms_p50=float(np.median(latencies)) if latencies else None,
         out=None if out is None else Path(out),
         drops=drops,
+        skipped=skipped,
         warm_up_s=warm_up_s,
         compiled=getattr(pred, "compiled", None),
     )

@@ -8,6 +8,7 @@ what the replay of the session's recording gives: live and replay are one path.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -105,6 +106,45 @@ def test_democap_live_command_reports_json(
     assert out["predicted"] == out["instants"]
     assert sorted(out["frame_sets"]) == sorted(out["cameras"])
     assert out["out"] is None
+    # compiled by default, before the cameras started; the network kept up
+    assert isinstance(out["compiled"], bool)
+    assert out["warm_up_s"] > 0.0
+    assert out["skipped"] == 0
+
+
+class _SlowNetwork:
+    """The live network slowed far below the camera rate (as with ``--solve``)."""
+
+    def __init__(self, inner: DemocapPredictor) -> None:
+        self.inner = inner
+
+    def predict_many(self, clouds: Any, **kw: Any) -> Any:
+        time.sleep(0.4)
+        return self.inner.predict_many(clouds, **kw)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("one_thread")
+def test_a_network_behind_the_cameras_skips_instants_and_writes_each_skip_down(
+    calibrated_session: CalibratedSession, tmp_path: Path
+) -> None:
+    cs = calibrated_session
+    cams = open_cameras("mock", seed=cs.seed, seconds=cs.seconds)
+    out = tmp_path / "live.mcap"
+    slow = _SlowNetwork(DemocapPredictor(rotations=1, solve=False))
+    try:
+        summary = run_live(cams, cs.calibration, seconds=0.5, out=out, predictor=slow)
+    finally:
+        for cam in cams:
+            cam.close()
+    assert summary.skipped >= 1
+    assert summary.predicted + summary.skipped == summary.instants
+    assert summary.compiled is None  # this predictor does not say
+    with Recording(out) as rec:
+        logs = [m.decode().message for m in rec.messages("/log")]
+        counts = {st.topic: st.messages for st in info(out).streams}
+    assert sum("skipped: the network was behind" in m for m in logs) == summary.skipped
+    assert counts[JOINTS_TOPIC] == summary.predicted
 
 
 def test_democap_live_help_has_examples(capsys: pytest.CaptureFixture[str]) -> None:

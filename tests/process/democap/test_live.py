@@ -9,6 +9,7 @@ tiny random one (conftest's ``tiny_config``), so each module runs in a few secon
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -258,10 +259,47 @@ def test_stream_keeps_order_and_equals_process(predictor: DemocapPredictor) -> N
         one_by_one = [pipe.process(s) for s in sets]
         streamed = list(pipe.stream(iter(sets)))
         assert [r.index for r in streamed] == list(range(6))
+        assert not any(r.skipped for r in streamed)  # a replay's stream waits, skips nothing
         for a, b in zip(one_by_one, streamed, strict=True):
             _same(a, b)
             assert b.timings_ms["latency_ms"] >= b.timings_ms["predict_ms"]
         assert list(pipe.stream([])) == []
+    assert _live_threads() == []
+
+
+class _SlowPredictor:
+    """A predictor far slower than the measurement (a network behind the cameras)."""
+
+    def __init__(self, inner: DemocapPredictor, delay_s: float) -> None:
+        self.inner, self.delay_s = inner, delay_s
+
+    def predict_many(self, clouds: Any, **kw: Any) -> list[Prediction]:
+        time.sleep(self.delay_s)
+        return self.inner.predict_many(clouds, **kw)
+
+
+def test_keep_up_skips_the_sets_a_slow_network_cannot_reach_and_says_so(
+    predictor: DemocapPredictor,
+) -> None:
+    cams = _cameras()
+    sets = [_frame_set(cams, seed=s) for s in range(12)]
+    with LivePipeline(predictor, cams) as pipe:
+        want = [pipe.process(s) for s in sets]
+    with LivePipeline(_SlowPredictor(predictor, 0.2), cams, queue_size=1) as pipe:
+        got = list(pipe.stream(iter(sets), keep_up=True))
+    # every set comes out once, in order: predicted, or skipped in its place
+    assert [r.index for r in got] == list(range(12))
+    skipped = [r for r in got if r.skipped]
+    assert skipped  # the network took 0.2 s a set; the sets came at once
+    for r in skipped:
+        assert r.prediction is None
+        assert r.cloud_m.shape == (0, 3)
+        assert r.cameras_used == 0
+        assert r.timings_ms == {}
+    assert not got[-1].skipped  # the newest set always reaches the network
+    for r in got:
+        if not r.skipped:
+            _same(want[r.index], r)
     assert _live_threads() == []
 
 
