@@ -358,11 +358,8 @@ class DemocapPredictor:
         self.net = ckpt.model.eval()
         self._run_net: DemocapModel = _inference_copy(self.net) if optimise else self.net
         self._channels_last = optimise
-        self._compiled = _CompiledDecode(self._run_net) if compile else None
         self._decode: _Decode = (
-            self._compiled
-            if self._compiled is not None
-            else functools.partial(decode, self._run_net)
+            _CompiledDecode(self._run_net) if compile else functools.partial(decode, self._run_net)
         )
         self.size_px = ckpt.config.input_px
         #: size of the rotation ensemble (1: single shot)
@@ -390,7 +387,7 @@ class DemocapPredictor:
     def compiled(self) -> bool:
         """Whether the network stage runs compiled: ``compile=True`` and no compiling has
         failed so far (module doc, "Compiled network")."""
-        return self._compiled is not None and self._compiled.failure is None
+        return isinstance(self._decode, _CompiledDecode) and self._decode.failure is None
 
     def warm_up(self) -> float:
         """One network pass over a made-up cloud (a 1.75 m column of points): a compiled

@@ -210,11 +210,9 @@ def run_live(
             )
         )
     pred = live_predictor() if predictor is None else predictor
-    # a compiled network compiles here, before the cameras stream (seconds, once)
+    # a compiled network compiles here (and logs it), before the cameras stream
     warm_up = getattr(pred, "warm_up", None)
     warm_up_s = float(warm_up()) if callable(warm_up) else 0.0
-    if warm_up_s > 1.0:
-        _log.info("the predictor warmed up in %.1f s (the network compiled)", warm_up_s)
     counts: dict[str, int] = {}
     latencies: list[float] = []
     instants = predicted = skipped = 0

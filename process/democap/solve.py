@@ -549,8 +549,9 @@ class _Views:
         """1.0 where a point (P, ..., 3) lies in some camera's view of its problem and inside
         the crop box (P, ...)."""
         shape = pts.shape
+        flat = pts.reshape(shape[0], -1, 3)
         inside = in_frustum_torch(
-            pts.reshape(shape[0], -1, 3),
+            flat,
             self.centre,
             self.r_cw,
             self.focal,
@@ -558,7 +559,6 @@ class _Views:
             size_px=self.size,
         ).any(-1)
         if self.box is not None:
-            flat = pts.reshape(shape[0], -1, 3)
             inside &= ((flat >= self.box[:, 0]) & (flat <= self.box[:, 1])).all(-1)
         return inside.to(pts.dtype).reshape(shape[:-1])
 
