@@ -283,6 +283,13 @@ def _unseen_real_line(ur: dict[str, Any]) -> str:
             f"mirror, {om['frames']} frames): {inside_text(om['inside_volume'])}; all frames "
             f"{om['mpjpe_mm']:.1f} mm, {100 * om['pck50']:.1f} %"
         )
+        cal = om.get("subject_calibrated")
+        if cal:
+            lines.append(
+                "  DeMoCap [off-model], each clip's subject calibrated from its frames "
+                f"(segment lengths, marker placement): {inside_text(cal['inside_volume'])}; "
+                f"all frames {cal['mpjpe_mm']:.1f} mm, {100 * cal['pck50']:.1f} %"
+            )
     return "\n".join(lines)
 
 

@@ -139,9 +139,11 @@ def _unseen_real_figures(
     split (real motion of performers it never saw), 4 cameras, its default inference
     (ensemble and skeleton solve); the figures over the frames inside the cameras' view and
     over all frames; then the same clips on subjects the body model does not mirror (the
-    ``off-model`` protocol, under ``"off_model"``). ``progress`` makes each figure's
-    ``(frames estimated, frames)`` callback from its stage label (``"democap unseen-real"``,
-    ``"democap off-model"``)."""
+    ``off-model`` protocol, under ``"off_model"``), once frame by frame and once with each
+    clip's subject calibrated from its frames (under ``"off_model"["subject_calibrated"]``).
+    ``progress`` makes each figure's ``(frames estimated, frames)`` callback from its stage
+    label (``"democap unseen-real"``, ``"democap off-model"``, ``"democap off-model,
+    subjects calibrated"``)."""
     from mocaprig.process.democap.evaluate import off_model, unseen_real
     from mocaprig.process.democap.infer import DemocapPredictor
 
@@ -161,9 +163,19 @@ def _unseen_real_figures(
         frames_per_clip=UNSEEN_REAL_FRAMES,
         progress=report,
     )
-    if res.report is None or off.report is None:
+    calibrated = off_model(
+        DemocapPredictor(predictor.checkpoint, subject_calibration=1),
+        corpus_dir,
+        seed=seed,
+        frames_per_clip=UNSEEN_REAL_FRAMES,
+        progress=None
+        if report is None
+        else lambda name, done, total: report(f"{name}, subjects calibrated", done, total),
+    )
+    if res.report is None or off.report is None or calibrated.report is None:
         msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note or off.note}"
         raise ProcessingError(msg)
+    c = calibrated.to_dict()
     d = res.to_dict()
     inside = d["inside_volume"]
     o = off.to_dict()
@@ -196,6 +208,13 @@ def _unseen_real_figures(
             "mpjpe_mm": o["mpjpe_mm"],
             "pck50": o["pck50"],
             "inside_volume": {k: o["inside_volume"][k] for k in keys},
+            "subject_calibrated": {
+                "rounds": c["subject_calibration"],
+                "frames": c["frames"],
+                "mpjpe_mm": c["mpjpe_mm"],
+                "pck50": c["pck50"],
+                "inside_volume": {k: c["inside_volume"][k] for k in keys},
+            },
         },
     }
 

@@ -44,7 +44,13 @@ if TYPE_CHECKING:
     )
     from mocaprig.process.democap.model import DemocapNet, build_network
     from mocaprig.process.democap.replay import ReplayResult, run_replay, score_replay
-    from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
+    from mocaprig.process.democap.solve import (
+        SolveOptions,
+        SolveResult,
+        SubjectCalibration,
+        calibrate_subject,
+        solve_skeleton,
+    )
     from mocaprig.process.democap.train import TrainOptions
 
 #: The public names by submodule, imported on first use (:mod:`mocaprig.lazy_exports`): most
@@ -64,7 +70,13 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "model": ("DemocapNet", "build_network"),
     "replay": ("ReplayResult", "run_replay", "score_replay"),
-    "solve": ("SolveOptions", "SolveResult", "solve_skeleton"),
+    "solve": (
+        "SolveOptions",
+        "SolveResult",
+        "SubjectCalibration",
+        "calibrate_subject",
+        "solve_skeleton",
+    ),
     "train": ("TrainOptions",),
 }
 __getattr__ = lazy_getattr(__name__, _EXPORTS)
@@ -88,8 +100,10 @@ __all__ = [
     "ReplayResult",
     "SolveOptions",
     "SolveResult",
+    "SubjectCalibration",
     "TrainOptions",
     "build_network",
+    "calibrate_subject",
     "cameras_from_calibration",
     "config_by_name",
     "demo_figures",

@@ -106,7 +106,10 @@ clip (default per protocol: 40, 20, 10, 8), --subjects the bodies per clip (corp
 of the actions.
 The estimates are skeleton solves by default: the body model (pose, segment lengths, girth)
 fitted to the cloud from the network's estimates, the ensemble's and each turn's, the best fit
-kept; --no-solve scores the network's own estimates (the paper's output).
+kept; --no-solve scores the network's own estimates (the paper's output). With
+--subject-calibration N each take's frames (one subject) are solved, the subject's segment
+lengths and marker placement calibrated from them, and solved again, N times (one more solve
+per round; 0, the default, solves every frame on its own).
 MPJPE is over the paper's 17 joints (no toes), MPMPE over the 53 markers, in mm. Any variant's
 checkpoint can be evaluated; a pose baseline estimates no markers, so its MPMPE, RMSPMPE and
 MPJAE are reported as n/a (null with --json).
@@ -120,6 +123,7 @@ examples:
   mocaprig democap eval --motion ../shared/data/motion/cmu_131_02_scaled.bvh
   mocaprig democap eval --freestyle --json          random key poses never trained on
   mocaprig democap eval --protocol unseen-real --no-solve --rotations 1   the paper's single shot
+  mocaprig democap eval --protocol off-model --subject-calibration 1 --json
 """
 
 _RUN_EPILOG = """\
@@ -288,6 +292,14 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     )
     ev.add_argument(
         "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
+    )
+    ev.add_argument(
+        "--subject-calibration",
+        type=int,
+        default=0,
+        metavar="N",
+        help="calibrate each take's subject from its frames and solve again, N rounds "
+        "(default: %(default)s = every frame on its own)",
     )
     _add_inference_options(ev)
     add_json_flag(ev)
@@ -667,6 +679,9 @@ def democap_eval(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
+    if args.subject_calibration < 0 or (args.subject_calibration and args.no_solve):
+        msg = "--subject-calibration takes N >= 0 rounds and needs the solve (not --no-solve)"
+        raise ValidationError(msg)
     protocols = PROTOCOLS if args.protocol == "all" else (args.protocol,)
     single = special or args.protocol in ("in-distribution", "unseen-real", "off-model")
     if args.all_cameras and not single:
@@ -678,6 +693,7 @@ def democap_eval(args: argparse.Namespace) -> int:
         solve=not args.no_solve,
         pose_bank=not args.no_pose_bank,
         resolve_rounds=args.resolve_rounds,
+        subject_calibration=args.subject_calibration,
     )
     cams = (4, 3, 2) if args.all_cameras else (args.cameras,)
     corpus = _corpus_dir(args.corpus)

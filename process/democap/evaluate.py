@@ -75,6 +75,7 @@ from mocaprig.process.democap.simdata import (
     CAPTURE_BOX_M,
     NOMINAL_OBSERVATION,
     PERTURBATION_KNOBS,
+    Camera,
     ObservationModel,
     PoseFrames,
     in_frustum,
@@ -216,6 +217,8 @@ class EvalReport:
         per_torso_tilt: MPJPE and frames per bin of the true torso's tilt from the vertical
             (:data:`TILT_BINS_DEG`, :func:`torso_tilt_deg`), over every frame;
             ``inside_per_torso_tilt`` over the frames inside the volume.
+        subject_calibration: rounds of subject calibration per take (0: every frame on its
+            own; :attr:`DemocapPredictor.subject_calibration`).
     """
 
     metrics: PoseMetrics
@@ -230,6 +233,7 @@ class EvalReport:
     skipped_frames: int = 0
     per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
     inside_per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
+    subject_calibration: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: the all-frames figures at the top (per-joint errors keyed by joint
@@ -243,6 +247,7 @@ class EvalReport:
         d["frames_requested"] = self.frames_requested
         d["skipped_frames"] = self.skipped_frames
         d["per_torso_tilt"] = self.per_torso_tilt
+        d["subject_calibration"] = self.subject_calibration
         d["inside_volume"] = _summary(self.inside_metrics) | {
             "share": self.inside_share,
             "per_torso_tilt": self.inside_per_torso_tilt,
@@ -313,6 +318,35 @@ def _metrics(
     )
 
 
+def _by_subject(
+    predictor: DemocapPredictor,
+    clouds: list[FloatArray],
+    views: list[list[Camera]],
+    take_of: npt.NDArray[np.intp],
+    progress: Callable[[int, int], None] | None,
+) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Each take's frames through :meth:`DemocapPredictor.predict_subject` (one subject per
+    take; a take of fewer than 3 clouds frame by frame) -> markers, joints in cloud order."""
+    pm: list[FloatArray] = [np.empty(0)] * len(clouds)
+    pj: list[FloatArray] = [np.empty(0)] * len(clouds)
+    done = 0
+    for t in np.unique(take_of):
+        rows = np.flatnonzero(take_of == t)
+        cl, vw = [clouds[i] for i in rows], [views[i] for i in rows]
+        if len(rows) >= 3:
+            out, _ = predictor.predict_subject(
+                cl, views=vw, crop_box_m=CAPTURE_BOX_M, rounds=predictor.subject_calibration
+            )
+        else:
+            out = predictor.predict_many(cl, views=vw, crop_box_m=CAPTURE_BOX_M)
+        for i, p in zip(rows, out, strict=True):
+            pm[i], pj[i] = p.markers_m, p.joints_m
+        done += len(rows)
+        if progress is not None:
+            progress(done, len(clouds))
+    return pm, pj
+
+
 def evaluate(
     predictor: DemocapPredictor,
     *,
@@ -356,8 +390,9 @@ def evaluate(
     rng = np.random.default_rng([seed, 7, num_cameras])
     size = predictor.size_px
     clouds, tm, tj, actions, seen, inside, views = [], [], [], [], [], [], []
+    take_of: list[int] = []
     requested = 0
-    for take in takes:
+    for k_take, take in enumerate(takes):
         idx = np.linspace(0, take.num_frames - 1, min(frames_per_take, take.num_frames))
         for i in np.round(idx).astype(int):
             requested += 1
@@ -380,6 +415,7 @@ def evaluate(
             seen.append(float(np.mean(d.min(axis=0) < 0.03)))
             inside.append(bool(in_frustum(s.joints_m[:1], list(s.cameras)).all()))
             views.append(list(s.cameras))
+            take_of.append(k_take)
     if not clouds:
         msg = f"none of the {requested} frames gave a cloud of 2 points or more"
         raise ProcessingError(msg)
@@ -387,19 +423,23 @@ def evaluate(
         _log.info(
             "%d of %d frames skipped: fewer than 2 points", requested - len(clouds), requested
         )
-    pm, pj = [], []
+    pm: list[FloatArray] = []
+    pj: list[FloatArray] = []
     if progress is not None:
         progress(0, len(clouds))
-    for k in range(0, len(clouds), batch):
-        # the rig is calibrated: the solve knows where the cameras look
-        # the simulated clouds are cropped to the capture box, as the replay's are
-        for p in predictor.predict_many(
-            clouds[k : k + batch], views=views[k : k + batch], crop_box_m=CAPTURE_BOX_M
-        ):
-            pm.append(p.markers_m)
-            pj.append(p.joints_m)
-        if progress is not None:
-            progress(len(pm), len(clouds))
+    if predictor.subject_calibration:
+        pm, pj = _by_subject(predictor, clouds, views, np.array(take_of), progress)
+    else:
+        for k in range(0, len(clouds), batch):
+            # the rig is calibrated: the solve knows where the cameras look
+            # the simulated clouds are cropped to the capture box, as the replay's are
+            for p in predictor.predict_many(
+                clouds[k : k + batch], views=views[k : k + batch], crop_box_m=CAPTURE_BOX_M
+            ):
+                pm.append(p.markers_m)
+                pj.append(p.joints_m)
+            if progress is not None:
+                progress(len(pm), len(clouds))
     pred_m, pred_j = np.array(pm) * 1000.0, np.array(pj) * 1000.0
     true_m, true_j = np.array(tm) * 1000.0, np.array(tj) * 1000.0
     markers = predictor.predicts_markers  # "pose": no markers, so no segment frames either
@@ -431,6 +471,7 @@ def evaluate(
         skipped_frames=requested - len(clouds),
         per_torso_tilt=_per_tilt(err, tilt),
         inside_per_torso_tilt=_per_tilt(err[ins], tilt[ins]),
+        subject_calibration=predictor.subject_calibration,
     )
 
 

@@ -99,7 +99,14 @@ from mocaprig.process.democap.model import (
 )
 from mocaprig.process.democap.pose_bank import BankSearch, PoseBank, bank_starts, load_pose_bank
 from mocaprig.process.democap.simdata import Box, Camera
-from mocaprig.process.democap.solve import SolveOptions, SolveResult, solve_skeleton
+from mocaprig.process.democap.solve import (
+    SHAPE_DIM,
+    SolveOptions,
+    SolveResult,
+    SubjectCalibration,
+    calibrate_subject,
+    solve_skeleton,
+)
 from mocaprig.validation import check_finite, check_shape
 
 __all__ = [
@@ -300,12 +307,16 @@ class DemocapPredictor:
             turns, the first on the calling thread and the others on threads the predictor
             keeps (made on first use). Each pass uses torch's own thread setting, which the
             caller owns. The estimates do not depend on it (the same to float rounding).
+        subject_calibration: with the solve, callers that know which frames show one
+            subject (:func:`evaluate.evaluate`: a take) estimate them with
+            :meth:`predict_subject` (calibrated, then solved again); this many rounds of
+            calibration, 0 for none (the default: every frame on its own).
 
     Raises:
         ProcessingError: the checkpoint is missing or does not match (see
             :func:`load_checkpoint`).
-        ValidationError: ``rotations`` or ``workers`` < 1, ``resolve_rounds`` < 0, or an unknown
-            ``combine``.
+        ValidationError: ``rotations`` or ``workers`` < 1, ``resolve_rounds`` or
+            ``subject_calibration`` < 0, or an unknown ``combine``.
     """
 
     def __init__(
@@ -324,6 +335,7 @@ class DemocapPredictor:
         bank_search: BankSearch | None = None,
         resolve_rounds: int = RESOLVE_ROUNDS,
         workers: int = 1,
+        subject_calibration: int = 0,
     ) -> None:
         self._turns = ensemble_rotations(int(rotations))
         # the sparse ensemble's turns that the ensemble does not run already
@@ -346,8 +358,11 @@ class DemocapPredictor:
         if workers < 1:
             msg = f"workers must be >= 1, got {workers}"
             raise ValidationError(msg)
-        if resolve_rounds < 0:
-            msg = f"resolve_rounds must be >= 0, got {resolve_rounds}"
+        if resolve_rounds < 0 or subject_calibration < 0:
+            msg = (
+                "resolve_rounds and subject_calibration must be >= 0, got "
+                f"{resolve_rounds} and {subject_calibration}"
+            )
             raise ValidationError(msg)
         ckpt = (
             checkpoint
@@ -380,6 +395,8 @@ class DemocapPredictor:
         self.bank_search = bank_search or BankSearch()
         #: rounds of the re-solve (module doc)
         self.resolve_rounds = int(resolve_rounds)
+        #: rounds of subject calibration for frames known to show one subject (0: none)
+        self.subject_calibration = int(subject_calibration) if self.solves else 0
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 
@@ -518,6 +535,7 @@ class DemocapPredictor:
         jt: FloatArray,
         views: Sequence[Sequence[Camera]] | None,
         crop_box_m: Box | None = None,
+        subjects: Sequence[SubjectCalibration | None] | None = None,
     ) -> SolveResult:
         """The solve of ``points`` (``views``: their cameras, ``crop_box_m``: their crop) from
         the turns' estimates (K, B, ...): their combination, then each turn's (a single turn
@@ -532,6 +550,7 @@ class DemocapPredictor:
             options=self.solve_options,
             views=views,
             crop_box_m=crop_box_m,
+            subjects=subjects,
         )
 
     def predict_many(
@@ -553,19 +572,75 @@ class DemocapPredictor:
                 than 2 points; ``views`` not one camera list per cloud; when it solves, a bad
                 ``crop_box_m`` or one without ``views`` (:func:`solve.solve_skeleton` checks it).
         """
-        if views is not None and len(views) != len(clouds):
-            msg = (
-                f"views has {len(views)} entries for {len(clouds)} clouds; give one camera "
-                "list per cloud"
-            )
-            raise ValidationError(msg)
+        _check_views(views, len(clouds))
         points = _checked(clouds)
         if not points:
             return []
-        markers, joints, mk, jt = self._hypotheses(points)
-        n = len(points)
         if not self.solves:
-            return [Prediction(markers_m=markers[i], joints_m=joints[i]) for i in range(n)]
+            markers, joints, _, _ = self._hypotheses(points)
+            return [
+                Prediction(markers_m=m, joints_m=j) for m, j in zip(markers, joints, strict=True)
+            ]
+        _, _, mk, jt = self._hypotheses(points)
+        return self._solved(points, mk, jt, views, crop_box_m, None).predictions()
+
+    def predict_subject(
+        self,
+        clouds: Sequence[npt.ArrayLike],
+        *,
+        views: Sequence[Sequence[Camera]] | None = None,
+        crop_box_m: Box | None = None,
+        rounds: int = 1,
+    ) -> tuple[list[Prediction], SubjectCalibration]:
+        """Frames of one subject (a take, or a range-of-motion take): solved one by one
+        (:meth:`predict_many`), the subject calibrated from them (:func:`calibrate_subject`:
+        their segment lengths and where their markers sit), then solved again with the
+        calibration, ``rounds`` times. Costs ``1 + rounds`` solves; the network runs once.
+
+        Raises:
+            ValidationError: what :meth:`predict_many` raises; a predictor that does not
+                solve; fewer than 3 clouds; ``rounds`` < 1.
+        """
+        if not self.solves:
+            msg = "predict_subject needs the skeleton solve (DemocapPredictor(solve=True))"
+            raise ValidationError(msg)
+        if rounds < 1:
+            msg = f"rounds must be >= 1, got {rounds}"
+            raise ValidationError(msg)
+        _check_views(views, len(clouds))
+        points = _checked(clouds)
+        if len(points) < 3:
+            msg = f"a subject calibration needs at least 3 clouds, got {len(points)}"
+            raise ValidationError(msg)
+        _, _, mk, jt = self._hypotheses(points)
+        sol = self._solved(points, mk, jt, views, crop_box_m, None)
+        cal = calibrate_subject(points, sol.result(), views=views, crop_box_m=crop_box_m)
+        for k in range(rounds):
+            if k:
+                cal = calibrate_subject(
+                    points, sol.result(), views=views, crop_box_m=crop_box_m, previous=cal
+                )
+            sol = self._solved(points, mk, jt, views, crop_box_m, [cal] * len(points))
+        _log.info(
+            "subject calibrated from %d frames (%d round(s)): height %.3f m",
+            len(points),
+            rounds,
+            float(np.median(sol.height_m)),
+        )
+        return sol.predictions(), cal
+
+    def _solved(
+        self,
+        points: list[FloatArray],
+        mk: FloatArray,
+        jt: FloatArray,
+        views: Sequence[Sequence[Camera]] | None,
+        crop_box_m: Box | None,
+        subjects: Sequence[SubjectCalibration | None] | None,
+    ) -> _Solved:
+        """The solve of ``points`` from the turns' estimates ``mk, jt`` (K, B, ...) of
+        :meth:`_hypotheses`, the pose bank and the re-solves."""
+        n = len(points)
         timings = dict(self.last_timings_s)
         sparse = np.array([len(p) < self.sparse_points for p in points]) & bool(self._sparse_turns)
         t3 = time.perf_counter()
@@ -573,7 +648,12 @@ class DemocapPredictor:
         dense = np.flatnonzero(~sparse)
         if len(dense):
             sub, sub_views = _rows(points, views, dense)
-            sol.put(dense, self._solve(sub, mk[:, dense], jt[:, dense], sub_views, crop_box_m))
+            sol.put(
+                dense,
+                self._solve(
+                    sub, mk[:, dense], jt[:, dense], sub_views, crop_box_m, _pick(subjects, dense)
+                ),
+            )
         few = np.flatnonzero(sparse)
         if len(few):
             sub, sub_views = _rows(points, views, few)
@@ -583,7 +663,9 @@ class DemocapPredictor:
                 timings[key] += v
             t3 += time.perf_counter() - t_net  # the network's time is not the solve's
             all_m, all_j = np.concatenate([mk[:, few], xm]), np.concatenate([jt[:, few], xj])
-            sol.put(few, self._solve(sub, all_m, all_j, sub_views, crop_box_m))
+            sol.put(
+                few, self._solve(sub, all_m, all_j, sub_views, crop_box_m, _pick(subjects, few))
+            )
         sizes = np.array([len(p) for p in points])
         poor = np.flatnonzero(sol.energy / sizes > self.bank_search.energy_per_point)
         if self.pose_bank is not None and len(poor):
@@ -594,7 +676,13 @@ class DemocapPredictor:
             # the bank already holds bent bodies: no bent copies of its starts
             opt = replace(self.solve_options, bend_starts_rad=())
             banked = solve_skeleton(
-                sub, bm, bj, options=opt, views=sub_views, crop_box_m=crop_box_m
+                sub,
+                bm,
+                bj,
+                options=opt,
+                views=sub_views,
+                crop_box_m=crop_box_m,
+                subjects=_pick(subjects, poor),
             )
             better = np.flatnonzero(banked.energy < sol.energy[poor])
             sol.put(poor[better], banked, better)
@@ -612,6 +700,7 @@ class DemocapPredictor:
                 options=self.solve_options,
                 views=sub_views,
                 crop_box_m=crop_box_m,
+                subjects=_pick(subjects, todo),
             )
             better = np.flatnonzero(again.energy < sol.energy[todo])
             sol.put(todo[better], again, better)
@@ -622,15 +711,20 @@ class DemocapPredictor:
             timings["resolve_s"] = time.perf_counter() - t_again
         timings["solve_s"] = time.perf_counter() - t3
         self.last_timings_s = timings
-        return [
-            Prediction(
-                markers_m=sol.markers_m[i],
-                joints_m=sol.joints_m[i],
-                pose=sol.poses[i],
-                height_m=float(sol.height_m[i]),
-            )
-            for i in range(n)
-        ]
+        return sol
+
+
+def _check_views(views: Sequence[Sequence[Camera]] | None, n: int) -> None:
+    if views is not None and len(views) != n:
+        msg = f"views has {len(views)} entries for {n} clouds; give one camera list per cloud"
+        raise ValidationError(msg)
+
+
+def _pick(
+    subjects: Sequence[SubjectCalibration | None] | None, rows: npt.NDArray[np.intp]
+) -> list[SubjectCalibration | None] | None:
+    """The calibrations of ``rows`` (None: no calibrations)."""
+    return None if subjects is None else [subjects[int(i)] for i in rows]
 
 
 def _rows(
@@ -652,6 +746,7 @@ class _Solved:
     poses: FloatArray
     height_m: FloatArray
     energy: FloatArray
+    shape_z: FloatArray
 
     @staticmethod
     def empty(n: int) -> _Solved:
@@ -661,6 +756,30 @@ class _Solved:
             np.full((n, POSE_DIM), np.nan),
             np.full((n,), np.nan),
             np.full((n,), np.inf),
+            np.full((n, SHAPE_DIM), np.nan),
+        )
+
+    def predictions(self) -> list[Prediction]:
+        return [
+            Prediction(
+                markers_m=self.markers_m[i],
+                joints_m=self.joints_m[i],
+                pose=self.poses[i],
+                height_m=float(self.height_m[i]),
+            )
+            for i in range(len(self.energy))
+        ]
+
+    def result(self) -> SolveResult:
+        """As a :class:`SolveResult` (the hypotheses are not kept: all 0)."""
+        return SolveResult(
+            markers_m=self.markers_m,
+            joints_m=self.joints_m,
+            poses=self.poses,
+            height_m=self.height_m,
+            energy=self.energy,
+            hypothesis=np.zeros(len(self.energy), np.int64),
+            shape_z=self.shape_z,
         )
 
     def put(
@@ -676,3 +795,4 @@ class _Solved:
         self.poses[rows] = sol.poses[pick]
         self.height_m[rows] = sol.height_m[pick]
         self.energy[rows] = sol.energy[pick]
+        self.shape_z[rows] = sol.shape_z[pick]

@@ -51,6 +51,14 @@ minimum no gradient step leaves; solved from the truth, such frames reach a lowe
 What it assumes: the subject is one of our bodies (proportions near Drillis & Contini,
 markers where :class:`MarkerSet` puts them, rigid on their segments). The ``off-model``
 evaluation protocol measures what it costs when they are not (docs/democap.md).
+
+**Subject calibration** (:func:`calibrate_subject`): frames of one subject, each solved on
+its own, tell their segment lengths and where their markers sit (the medians over the frames
+the solve explains best); a solve given the :class:`SubjectCalibration` (``subjects``) holds
+the shape within ``subject_shape_sigma`` of it (instead of the body model's ±4 %) and moves
+each marker by its offset (in the segment's frame, not solved for: ``_State.m_fix``). A
+marker moved along its bone is indistinguishable from a longer bone and is found only in
+part; across it, in full.
 """
 
 from __future__ import annotations
@@ -99,7 +107,15 @@ from mocaprig.process.body.skeleton import (
 from mocaprig.process.democap.simdata import Box, Camera, check_crop_box, in_frustum_torch
 from mocaprig.validation import check_finite, check_positive, check_shape
 
-__all__ = ["REFERENCE_HEIGHT_M", "SolveOptions", "SolveResult", "solve_skeleton"]
+__all__ = [
+    "REFERENCE_HEIGHT_M",
+    "SHAPE_DIM",
+    "SolveOptions",
+    "SolveResult",
+    "SubjectCalibration",
+    "calibrate_subject",
+    "solve_skeleton",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -110,6 +126,8 @@ REFERENCE_HEIGHT_M = 1.75
 _NL = len(LENGTH_FIELDS)
 #: Shape unknowns: h, g, then one relative change per length.
 _NS = 2 + _NL
+#: Shape unknowns per frame (``SolveResult.shape_z``): h, g, then one change per length.
+SHAPE_DIM = _NS
 _NP = ROOT_DIM + NUM_DOF + _NS
 #: Frames solved at once (bounds the memory of the derivative operators, ~50 kB a frame).
 _CHUNK = 512
@@ -174,6 +192,7 @@ class SolveOptions:
     refine_iterations: int = 12
     refine_gate_start_m: float = 0.10
     limb_keep: tuple[int, ...] = (8, 2)
+    subject_shape_sigma: float = 0.01
 
     def __post_init__(self) -> None:
         for name in (
@@ -191,6 +210,7 @@ class SolveOptions:
             "refine_gate_start_m",
             "limb_gate_m",
             "limb_fine_gate_m",
+            "subject_shape_sigma",
         ):
             check_positive(float(getattr(self, name)), name=f"SolveOptions.{name}")
         lo, hi = self.height_range
@@ -231,6 +251,25 @@ class SolveResult:
     height_m: FloatArray
     energy: FloatArray
     hypothesis: npt.NDArray[np.int64]
+    #: (B, 17) the solved shapes: ``h, g, δ_1..15`` (module doc)
+    shape_z: FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class SubjectCalibration:
+    """One subject's body as their own frames show it (:func:`calibrate_subject`).
+
+    Attributes:
+        shape_z: (17,) the shape unknowns ``h, g, δ_1..15`` (module doc); a solve given the
+            calibration holds each within ``SolveOptions.subject_shape_sigma`` of it.
+        marker_offsets_m: (53, 3) where each marker sits on its segment against where the
+            marker set puts it, segment frame, m (0 where the frames did not tell).
+        frames: frames the calibration was made from.
+    """
+
+    shape_z: FloatArray
+    marker_offsets_m: FloatArray
+    frames: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -387,6 +426,8 @@ class _State:
     root_t: torch.Tensor  # (P, 3)
     angles: torch.Tensor  # (P, 27)
     z: torch.Tensor  # (P, 17)
+    # (P, 53, 3) the subject's marker corrections, segment frames, m (held, not solved for)
+    m_fix: torch.Tensor
 
     def step(self, d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> _State:
         """The state moved by increments ``d`` (P, 50), angles projected onto the limits."""
@@ -395,6 +436,7 @@ class _State:
             root_t=self.root_t + d[:, 3:6],
             angles=torch.clamp(self.angles + d[:, ROOT_DIM : ROOT_DIM + NUM_DOF], lo, hi),
             z=self.z + d[:, ROOT_DIM + NUM_DOF :],
+            m_fix=self.m_fix,
         )
 
     def where(self, keep: torch.Tensor, other: _State) -> _State:
@@ -405,11 +447,14 @@ class _State:
             root_t=torch.where(k1, self.root_t, other.root_t),
             angles=torch.where(k1, self.angles, other.angles),
             z=torch.where(k1, self.z, other.z),
+            m_fix=torch.where(k2, self.m_fix, other.m_fix),
         )
 
     def take(self, idx: torch.Tensor) -> _State:
         """The problems ``idx``."""
-        return _State(self.root_r[idx], self.root_t[idx], self.angles[idx], self.z[idx])
+        return _State(
+            self.root_r[idx], self.root_t[idx], self.angles[idx], self.z[idx], self.m_fix[idx]
+        )
 
     @staticmethod
     def cat(states: Sequence[_State]) -> _State:
@@ -419,6 +464,7 @@ class _State:
             torch.cat([x.root_t for x in states]),
             torch.cat([x.angles for x in states]),
             torch.cat([x.z for x in states]),
+            torch.cat([x.m_fix for x in states]),
         )
 
     def poses(self) -> FloatArray:
@@ -441,7 +487,7 @@ def _pose(s: _State, b: _Basis) -> _Posed:
     h, g, dl = s.z[:, 0:1], s.z[:, 1:2], s.z[:, 2:]
     rel = torch.cat([b.f0[:_NL] * (1.0 + dl), b.f0[_NL:] * g], dim=1)
     off = h[..., None] * torch.tensordot(rel, b.d_off, 1)
-    m_off = h[..., None] * (b.m_off0 + torch.tensordot(rel - b.f0, b.d_moff, 1))
+    m_off = h[..., None] * (b.m_off0 + torch.tensordot(rel - b.f0, b.d_moff, 1)) + s.m_fix
     local = torch.cat([torch.zeros(s.angles.shape[0], ROOT_DIM, dtype=s.angles.dtype), s.angles], 1)
     pos_b, rot_b = forward_kinematics_torch(local, off)
     pos = (s.root_r[:, None] @ pos_b[..., None])[..., 0] + s.root_t[:, None]
@@ -464,7 +510,7 @@ def _shape_jacobians(s: _State, q: _Posed, b: _Basis) -> tuple[torch.Tensor, tor
         1, 2, 0
     )
     d_mo = torch.zeros(p_n, NUM_MARKERS, 3, _NS, dtype=torch.float64)
-    d_mo[..., 0] = q.m_off / h[:, None, None]
+    d_mo[..., 0] = (q.m_off - s.m_fix) / h[:, None, None]
     d_mo[..., 1] = h[:, None, None] * torch.tensordot(b.f0[_NL:], b.d_moff[_NL:], 1)
     d_mo[..., 2:] = h[:, None, None, None] * (b.f0[:_NL, None, None] * b.d_moff[:_NL]).permute(
         1, 2, 0
@@ -493,6 +539,7 @@ class _Data:
     mask: torch.Tensor  # (P, N) 1 for a real point
     tm: torch.Tensor  # (P, 53, 3) the network's markers
     tj: torch.Tensor  # (P, 19, 3) and joints
+    prior: _Prior  # the shape prior per problem
     views: _Views | None = None  # the rig's cameras per problem (None: everything is seen)
 
     def seen(self, pts: torch.Tensor) -> torch.Tensor:
@@ -509,8 +556,45 @@ class _Data:
             self.mask[lo:hi],
             self.tm[lo:hi],
             self.tj[lo:hi],
+            self.prior.rows(lo, hi),
             None if self.views is None else self.views.rows(lo, hi),
         )
+
+
+@dataclass(frozen=True, slots=True)
+class _Prior:
+    """Per problem: the shape prior's mean ``z0`` and weights ``zw`` (1/σ², P × 17) and the
+    marker corrections ``m_fix`` (P, 53, 3) a start is built with (the subject's, else
+    the body model's: mean ``(1, girth_mean, 0, ...)``, no corrections)."""
+
+    z0: torch.Tensor
+    zw: torch.Tensor
+    m_fix: torch.Tensor
+    z_start: torch.Tensor  # (P, 17) where a start's shape begins
+
+    @staticmethod
+    def of(subjects: Sequence[SubjectCalibration | None], opt: SolveOptions) -> _Prior:
+        n = len(subjects)
+        z0 = np.zeros((n, _NS))
+        z0[:, 0], z0[:, 1] = 1.0, opt.girth_mean
+        sig = np.empty((n, _NS))
+        sig[:, 0], sig[:, 1], sig[:, 2:] = opt.height_sigma, opt.girth_sigma, opt.length_sigma
+        fix = np.zeros((n, NUM_MARKERS, 3))
+        start = np.zeros((n, _NS))
+        start[:, 0:2] = 1.0
+        for i, c in enumerate(subjects):
+            if c is not None:
+                z0[i], sig[i], fix[i] = c.shape_z, opt.subject_shape_sigma, c.marker_offsets_m
+                start[i] = c.shape_z
+        t = torch.from_numpy
+        return _Prior(t(z0), t(1.0 / sig**2), t(fix), t(start))
+
+    def rows(self, lo: int, hi: int) -> _Prior:
+        return _Prior(self.z0[lo:hi], self.zw[lo:hi], self.m_fix[lo:hi], self.z_start[lo:hi])
+
+    def take(self, idx: npt.NDArray[np.intp]) -> _Prior:
+        i = torch.from_numpy(np.asarray(idx, np.int64))
+        return _Prior(self.z0[i], self.zw[i], self.m_fix[i], self.z_start[i])
 
 
 @dataclass(frozen=True, slots=True)
@@ -631,17 +715,8 @@ def _energy_terms(
         aux[key] = wt / sigma**2
     z = s.z
     lo, hi = opt.height_range
-    r_shape = torch.cat(
-        [
-            ((z[:, 0] - 1.0) / opt.height_sigma)[:, None],
-            (torch.relu(z[:, 0] - hi) / 0.005)[:, None],
-            (torch.relu(lo - z[:, 0]) / 0.005)[:, None],
-            ((z[:, 1] - opt.girth_mean) / opt.girth_sigma)[:, None],
-            z[:, 2:] / opt.length_sigma,
-        ],
-        dim=1,
-    )
-    e = e + (r_shape**2).sum(1)
+    over = torch.relu(z[:, 0] - hi) + torch.relu(lo - z[:, 0])
+    e = e + ((z - data.prior.z0) ** 2 * data.prior.zw).sum(1) + (over / 0.005) ** 2
     return e, aux
 
 
@@ -684,18 +759,13 @@ def _normal_equations(
     z = s.z
     lo, hi = opt.height_range
     o = ROOT_DIM + NUM_DOF
-    wh = 1.0 / opt.height_sigma**2
+    idx = torch.arange(o, _NP)
+    a[:, idx, idx] += data.prior.zw
+    g[:, o:] += data.prior.zw * (z - data.prior.z0)
     over = (z[:, 0] > hi).double() + (z[:, 0] < lo).double()
     wb = over / 0.005**2
-    a[:, o, o] += wh + wb
-    g[:, o] += wh * (z[:, 0] - 1.0) + wb * (z[:, 0] - torch.clamp(z[:, 0], lo, hi))
-    wg = 1.0 / opt.girth_sigma**2
-    a[:, o + 1, o + 1] += wg
-    g[:, o + 1] += wg * (z[:, 1] - opt.girth_mean)
-    wl = 1.0 / opt.length_sigma**2
-    idx = torch.arange(o + 2, _NP)
-    a[:, idx, idx] += wl
-    g[:, o + 2 :] += wl * z[:, 2:]
+    a[:, o, o] += wb
+    g[:, o] += wb * (z[:, 0] - torch.clamp(z[:, 0], lo, hi))
     return a, g
 
 
@@ -745,7 +815,9 @@ def _angles_from_local(local: FloatArray, g: _Group) -> FloatArray:
     return np.asarray(np.clip(best, lo, hi))
 
 
-def _initial_state(markers_m: FloatArray, joints_m: FloatArray, b: _Basis) -> _State:
+def _initial_state(
+    markers_m: FloatArray, joints_m: FloatArray, b: _Basis, prior: _Prior | None = None
+) -> _State:
     """The reference body placed on each estimate: every rigid group's rotation from its
     estimated points (Kabsch), the angles from the groups' relative rotations, the root on
     the pelvis; the inverse kinematics that follows refines it."""
@@ -764,13 +836,14 @@ def _initial_state(markers_m: FloatArray, joints_m: FloatArray, b: _Basis) -> _S
             angles[:, g.dofs] = _angles_from_local(local, g)
         else:  # the root's group carries the root joint to where the estimate has it
             root_t = np.einsum("pij,j->pi", r, b.rest_root_m) + t_group[:, :3, 3]
-    z = torch.zeros(p_n, _NS, dtype=torch.float64)
-    z[:, 0:2] = 1.0
+    if prior is None:
+        prior = _Prior.of([None] * p_n, SolveOptions())
     return _State(
         root_r=torch.from_numpy(np.ascontiguousarray(rots[0])),
         root_t=torch.from_numpy(root_t),
         angles=torch.from_numpy(angles),
-        z=z,
+        z=prior.z_start.clone(),
+        m_fix=prior.m_fix,
     )
 
 
@@ -889,7 +962,7 @@ def _limb_search(
             cand = moved.reshape(moved.shape[0], -1, NUM_DOF)
             e = _limb_energies(s, cand, data, limb, fine_gate_m)
         angles = cand[torch.arange(cand.shape[0]), e.argmin(dim=1)]
-    return _State(s.root_r, s.root_t, angles, s.z)
+    return _State(s.root_r, s.root_t, angles, s.z, s.m_fix)
 
 
 def _limb_energies(
@@ -906,7 +979,7 @@ def _limb_energies(
         hi = min(lo + _LIMB_CHUNK, p_n)
         p = hi - lo
         # Only the limb's subtree differs between candidates: the rest is posed once.
-        base = _State(s.root_r[lo:hi], s.root_t[lo:hi], cand[lo:hi, 0], s.z[lo:hi])
+        base = _State(s.root_r[lo:hi], s.root_t[lo:hi], cand[lo:hi, 0], s.z[lo:hi], s.m_fix[lo:hi])
         q0 = _pose(base, b)
         off = base.z[:, 0:1, None] * torch.tensordot(q0.rel, b.d_off, 1)
         pos, rot = subtree_kinematics_torch(
@@ -937,8 +1010,10 @@ def _data(
     tm: FloatArray,
     tj: FloatArray,
     views: _Views | None = None,
+    prior: _Prior | None = None,
 ) -> _Data:
-    """Problems' tensors; clouds padded with far points that no term sees."""
+    """Problems' tensors; clouds padded with far points that no term sees (``prior``: the
+    shape prior per problem, default the body model's)."""
     p_n = len(clouds)
     n = max(len(c) for c in clouds)
     cloud = np.full((p_n, n, 3), _FAR_M)
@@ -951,6 +1026,7 @@ def _data(
         mask=torch.from_numpy(mask),
         tm=torch.from_numpy(np.ascontiguousarray(tm)),
         tj=torch.from_numpy(np.ascontiguousarray(tj)),
+        prior=_Prior.of([None] * p_n, SolveOptions()) if prior is None else prior,
         views=views,
     )
 
@@ -982,6 +1058,7 @@ def _run(
     tj: FloatArray,
     steps: Sequence[_Weights],
     opt: SolveOptions,
+    prior: _Prior,
     *,
     start: _State | None = None,
     search_limbs: bool = False,
@@ -995,9 +1072,10 @@ def _run(
     for lo in range(0, len(clouds), _CHUNK):
         hi = min(lo + _CHUNK, len(clouds))
         rig = None if views is None else views.rows(lo, hi)
-        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi], rig)
+        part = prior.rows(lo, hi)
+        data = _data(clouds[lo:hi], tm[lo:hi], tj[lo:hi], rig, part)
         if start is None:
-            s = _initial_state(tm[lo:hi], tj[lo:hi], b)
+            s = _initial_state(tm[lo:hi], tj[lo:hi], b, part)
             init = _Weights(False, 0.0, 1.0, 0.03, 0.03, None)
             s = _levenberg_marquardt(s, data, [init] * opt.init_iterations, opt, b)
         else:
@@ -1018,6 +1096,7 @@ def solve_skeleton(
     options: SolveOptions | None = None,
     views: Sequence[Sequence[Camera]] | None = None,
     crop_box_m: Box | None = None,
+    subjects: Sequence[SubjectCalibration | None] | None = None,
 ) -> SolveResult:
     """Fit the body model to each fused cloud from H hypotheses of the network (module doc).
 
@@ -1039,6 +1118,9 @@ def solve_skeleton(
             three (low < high) pairs or comes without ``views``.
     """
     opt = options or SolveOptions()
+    if subjects is not None and len(subjects) != len(clouds):
+        msg = f"subjects has {len(subjects)} entries for {len(clouds)} clouds; give one per cloud"
+        raise ValidationError(msg)
     if crop_box_m is not None:
         check_crop_box(crop_box_m)
         if views is None:
@@ -1080,6 +1162,7 @@ def solve_skeleton(
             height_m=empty,
             energy=empty,
             hypothesis=np.zeros((0,), np.int64),
+            shape_z=np.zeros((0, _NS)),
         )
     # Problems: every (start, frame) pair, start-major. All starts take the first steps; then
     # only the ``keep_starts`` best of each frame go on (most starts end where another does).
@@ -1088,9 +1171,11 @@ def solve_skeleton(
     rig = None if views is None else _Views.of(views, crop_box_m)  # (B, K) cameras, once
     flat_views = None if rig is None else rig.take(frames)
     flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
+    prior = _Prior.of(list(subjects) if subjects is not None else [None] * n_b, opt)
+    flat_prior = prior.take(frames)
     steps = _schedule(opt)
     cut = min(opt.prune_after, len(steps)) if n_h > opt.keep_starts else len(steps)
-    s_all, e_all = _run(flat_clouds, flat_m, flat_j, steps[:cut], opt, views=flat_views)
+    s_all, e_all = _run(flat_clouds, flat_m, flat_j, steps[:cut], opt, flat_prior, views=flat_views)
     alive = np.arange(n_h * n_b)
     if cut < len(steps):
         order = np.argsort(e_all.numpy().reshape(n_h, n_b), axis=0, kind="stable")
@@ -1102,6 +1187,7 @@ def solve_skeleton(
             flat_j[alive],
             steps[cut:],
             opt,
+            flat_prior.take(alive),
             start=s_all.take(sel),
             views=None if flat_views is None else flat_views.take(alive),
         )
@@ -1117,7 +1203,7 @@ def solve_skeleton(
     e_best = torch.from_numpy(energy[best, np.arange(n_b)].copy())
     if opt.limb_search:
         s_best, e_best = _search_limbs(
-            pts, flat_m[won], flat_j[won], s_best, e_best, opt, views=rig
+            pts, flat_m[won], flat_j[won], s_best, e_best, opt, prior, views=rig
         )
     q = _pose(s_best, _basis())
     return SolveResult(
@@ -1127,7 +1213,77 @@ def solve_skeleton(
         height_m=_standing_height_m(s_best.z),
         energy=e_best.numpy(),
         hypothesis=best.astype(np.int64),
+        shape_z=s_best.z.numpy().copy(),
     )
+
+
+def calibrate_subject(
+    clouds: Sequence[npt.ArrayLike],
+    result: SolveResult,
+    *,
+    views: Sequence[Sequence[Camera]] | None = None,
+    crop_box_m: Box | None = None,
+    previous: SubjectCalibration | None = None,
+    match_m: float = 0.03,
+) -> SubjectCalibration:
+    """One subject's calibration from frames of them solved one by one (``result`` of
+    :func:`solve_skeleton` on ``clouds``; ``previous``: the calibration that solve was given).
+
+    What a marker-based system does with a range-of-motion take, from any frames: the half
+    of the frames whose clouds the solve explains best (energy per point) vote; the shape is
+    the median of their segment lengths, girth and height; each marker's offset is moved by
+    the median, over the frames where it is matched, of its residual to the cloud point
+    nearest it (within ``match_m``, the point's nearest marker being it too, where a camera
+    sees it), in its segment's frame. A marker matched in fewer than a third of the voting
+    frames (at least 2) keeps its offset.
+
+    Raises:
+        ValidationError: fewer than 3 frames, or ``result`` not of these clouds.
+    """
+    pts = [
+        np.asarray(check_finite(check_shape(c, ["N", 3], name="cloud")), np.float64) for c in clouds
+    ]
+    n = len(pts)
+    if n < 3:
+        msg = f"a subject calibration needs at least 3 solved frames, got {n}"
+        raise ValidationError(msg)
+    if result.shape_z.shape != (n, _NS):
+        msg = f"result holds {len(result.shape_z)} frames for {n} clouds; give the solve of these"
+        raise ValidationError(msg)
+    score = result.energy / np.array([len(p) for p in pts])
+    vote = np.flatnonzero(score <= np.median(score))
+    b = _basis()
+    z = result.shape_z[vote]
+    f0 = b.f0.numpy()
+    h = float(np.median(z[:, 0]))
+    lengths = np.median(f0[:_NL] * z[:, :1] * (1.0 + z[:, 2:]), axis=0)
+    girth = float(np.median(z[:, 0] * z[:, 1])) / h
+    shape = np.concatenate([[h, girth], lengths / (f0[:_NL] * h) - 1.0])
+    fix = np.zeros((NUM_MARKERS, 3)) if previous is None else previous.marker_offsets_m.copy()
+    poses = result.poses[vote]
+    state = _State(
+        root_r=torch.from_numpy(Rotation.from_rotvec(poses[:, :3]).as_matrix()),
+        root_t=torch.from_numpy(poses[:, 3:6].copy()),
+        angles=torch.from_numpy(poses[:, ROOT_DIM:].copy()),
+        z=torch.from_numpy(z.copy()),
+        m_fix=torch.from_numpy(np.broadcast_to(fix, (len(vote), NUM_MARKERS, 3)).copy()),
+    )
+    q = _pose(state, b)
+    picked = [pts[int(i)] for i in vote]
+    rig = None if views is None else _Views.of([views[int(i)] for i in vote], crop_box_m)
+    data = _data(picked, q.markers.numpy(), q.joints.numpy(), rig)
+    d_m, nn_m, _, nn_c = _nearest(q, data)
+    mutual = torch.gather(nn_c, 1, nn_m) == torch.arange(NUM_MARKERS)
+    ok = (mutual & (d_m < match_m) & (data.seen(q.markers) > 0)).numpy()
+    near = torch.gather(data.cloud, 1, nn_m[..., None].expand(-1, -1, 3))
+    rot = q.rot[:, b.marker_joint]  # (V, 53, 3, 3)
+    local = (rot.transpose(-1, -2) @ (near - q.markers)[..., None])[..., 0].numpy()
+    need = max(2, int(np.ceil(len(vote) / 3)))
+    for m in range(NUM_MARKERS):
+        rows = ok[:, m]
+        if rows.sum() >= need:
+            fix[m] += np.median(local[rows, m], axis=0)
+    return SubjectCalibration(shape_z=shape, marker_offsets_m=fix, frames=n)
 
 
 def _search_limbs(
@@ -1137,12 +1293,13 @@ def _search_limbs(
     s: _State,
     energy: torch.Tensor,
     opt: SolveOptions,
+    prior: _Prior,
     *,
     views: _Views | None = None,
 ) -> tuple[_State, torch.Tensor]:
     """The limb search and its refinement (:attr:`SolveOptions.limb_search`) from the
     solutions ``s`` with selection energies ``energy`` (B,); a frame keeps the better."""
     steps = _schedule(opt, gate_start_m=opt.refine_gate_start_m, iterations=opt.refine_iterations)
-    s_new, e_new = _run(clouds, tm, tj, steps, opt, start=s, search_limbs=True, views=views)
+    s_new, e_new = _run(clouds, tm, tj, steps, opt, prior, start=s, search_limbs=True, views=views)
     better = e_new < energy
     return s_new.where(better, s), torch.where(better, e_new, energy)

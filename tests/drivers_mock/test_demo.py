@@ -57,12 +57,18 @@ def test_demo_text_names_the_unseen_real_protocol_and_both_frame_sets() -> None:
     assert "off-model" not in line
     off = _unseen(30.04)
     off["solve"] = True
-    off["off_model"] = {**_unseen(38.06), "protocol": "off-model"}
+    off_model: dict[str, object] = {**_unseen(38.06), "protocol": "off-model"}
+    off["off_model"] = off_model
     lines = _unseen_real_line(off).splitlines()
     assert "skeleton solve" in lines[0]
     assert "[off-model]" in lines[1]
     assert "does not mirror" in lines[1]
     assert "MPJPE 38.1 mm" in lines[1]
+    assert len(lines) == 2
+    off_model["subject_calibrated"] = {**_unseen(25.04), "rounds": 1}
+    lines = _unseen_real_line(off).splitlines()
+    assert "subject calibrated" in lines[2]
+    assert "MPJPE 25.0 mm" in lines[2]
 
 
 def test_demo_text_says_why_the_unseen_real_figure_is_missing() -> None:
@@ -86,10 +92,12 @@ def test_unseen_real_stage_draws_each_figures_frames(
         return lambda done, total: calls.setdefault(label, []).append((done, total))
 
     got = demo._unseen_real_figures(shared_data / "motion" / "corpus", 0, stage)
-    assert list(calls) == ["democap unseen-real", "democap off-model"]
+    calibrated = "democap off-model, subjects calibrated"
+    assert list(calls) == ["democap unseen-real", "democap off-model", calibrated]
     for label, frames in (
         ("democap unseen-real", got["frames"]),
         ("democap off-model", got["off_model"]["frames"]),
+        (calibrated, got["off_model"]["subject_calibrated"]["frames"]),
     ):
         assert calls[label][0] == (0, frames)
         assert calls[label][-1] == (frames, frames)

@@ -236,3 +236,27 @@ def test_cli_eval_on_a_bvh_motion(shared_data: Path, capsys: pytest.CaptureFixtu
     out = json.loads(capsys.readouterr().out)
     assert out["frames"] == 8
     assert out["mpjpe_mm"] > 0
+
+
+def test_evaluate_calibrates_each_takes_subject_when_the_predictor_does() -> None:
+    calls: list[tuple[int, int]] = []
+    rep = evaluate(
+        DemocapPredictor(rotations=1, pose_bank=False, subject_calibration=1),
+        pool=make_pool(0, "test", takes=2, seconds=0.5),
+        frames_per_take=4,
+        progress=lambda done, total: calls.append((done, total)),
+    )
+    n = rep.frames_requested - rep.skipped_frames
+    assert rep.subject_calibration == 1
+    assert rep.to_dict()["subject_calibration"] == 1
+    assert calls[0] == (0, n)
+    assert calls[-1] == (n, n)
+    assert len(calls) == 3  # once per take
+    assert rep.metrics.mpjpe_mm < 60.0
+
+
+def test_cli_eval_refuses_a_subject_calibration_without_the_solve(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["democap", "eval", "--subject-calibration", "1", "--no-solve"]) != 0
+    assert "--subject-calibration" in capsys.readouterr().err

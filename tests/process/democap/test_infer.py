@@ -372,3 +372,32 @@ def test_a_poorly_explained_cloud_is_solved_again_from_its_own_solution(
     assert len(calls) == 1
     with pytest.raises(ValidationError, match="resolve_rounds"):
         DemocapPredictor(ck, resolve_rounds=-1)
+
+
+def test_predict_subject_solves_again_with_the_subject_calibrated_from_the_frames(
+    tiny_config: DemocapConfig,
+) -> None:
+    pool = make_pool(0, "test", takes=1, seconds=1.0)
+    clouds = [
+        make_sample(pool[0], i, np.random.default_rng(i), augment=False, size_px=64).raw_m
+        for i in (0, 10, 20, 29)
+    ]
+    pred = DemocapPredictor(_checkpoint(tiny_config), rotations=1, pose_bank=False)
+    alone = pred.predict_many(clouds)
+    got, cal = pred.predict_subject(clouds, rounds=2)
+    assert cal.frames == 4
+    assert cal.shape_z.shape == (17,)
+    assert cal.marker_offsets_m.shape == (53, 3)
+    assert len(got) == 4
+    # one body for every frame: the heights agree far better than frame by frame
+    heights = np.array([p.height_m for p in got])
+    assert np.ptp(heights) < 0.03
+    assert any(not np.allclose(a.joints_m, g.joints_m) for a, g in zip(alone, got, strict=True))
+    with pytest.raises(ValidationError, match="at least 3"):
+        pred.predict_subject(clouds[:2])
+    with pytest.raises(ValidationError, match="rounds"):
+        pred.predict_subject(clouds, rounds=0)
+    with pytest.raises(ValidationError, match="needs the skeleton solve"):
+        DemocapPredictor(_checkpoint(tiny_config), solve=False).predict_subject(clouds)
+    with pytest.raises(ValidationError, match="subject_calibration"):
+        DemocapPredictor(_checkpoint(tiny_config), subject_calibration=-1)

@@ -60,7 +60,9 @@ def _mpjpe_mm(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
-    """The analytic JᵀWr equals half the autograd gradient of the energy, for every term."""
+    """The analytic JᵀWr equals half the autograd gradient of the energy, for every term,
+    with the body model's shape prior and with a calibrated subject's (their marker
+    corrections held)."""
     _, mk, jt = _take(3)
     rng = np.random.default_rng(0)
     clouds = [_cloud(m, rng) for m in mk[:4]]
@@ -75,14 +77,21 @@ def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
         s0.root_t,
         mid + torch.from_numpy(rng.uniform(-0.5, 0.5, (4, 27))) * half,
         s0.z + torch.from_numpy(rng.normal(0, 0.05, s0.z.shape)),
+        torch.from_numpy(rng.normal(0, 0.01, (4, 53, 3))),
     )
+    subject = S.SubjectCalibration(
+        shape_z=np.r_[1.1, 0.95, rng.normal(0, 0.05, 15)],
+        marker_offsets_m=rng.normal(0, 0.01, (53, 3)),
+        frames=8,
+    )
+    prior = S._Prior.of([subject, None, subject, None], opt)
     n = max(len(c) for c in clouds)
     cloud = np.full((4, n, 3), 1e3)
     mask = np.zeros((4, n))
     for i, c in enumerate(clouds):
         cloud[i, : len(c)], mask[i, : len(c)] = c, 1.0
     t_cloud, t_mask, t_tm, t_tj = (torch.from_numpy(a) for a in (cloud, mask, tm, tj))
-    data = S._Data(t_cloud, t_mask, t_tm, t_tj)
+    data = S._Data(t_cloud, t_mask, t_tm, t_tj, prior)
     for w in (
         S._Weights(False, 0.0, 1.0, 0.03, 0.03, None),
         S._Weights(True, 0.05, 0.015, 0.05, 0.08, 0.1),
@@ -265,7 +274,9 @@ def test_limb_candidates_score_as_the_fully_posed_body_does() -> None:
             torch.stack(
                 [
                     S._selection_energy(
-                        S._pose(S._State(s.root_r, s.root_t, cand[:, k], s.z), b), data, 0.1
+                        S._pose(S._State(s.root_r, s.root_t, cand[:, k], s.z, s.m_fix), b),
+                        data,
+                        0.1,
                     )
                     for k in range(7)
                 ],
@@ -273,7 +284,9 @@ def test_limb_candidates_score_as_the_fully_posed_body_does() -> None:
             )
             * 0.1**2
         )
-        held = S._pose(S._State(s.root_r, s.root_t, cand[:, 0], s.z), b).markers[:, ~limb.markers]
+        held = S._pose(S._State(s.root_r, s.root_t, cand[:, 0], s.z, s.m_fix), b).markers[
+            :, ~limb.markers
+        ]
         d_h = torch.cdist(held, data.cloud).min(dim=2).values
         const = S._gm(d_h**2, 0.1)[0].sum(1)
         torch.testing.assert_close(got, whole - const[:, None], rtol=1e-9, atol=1e-9)
@@ -363,3 +376,34 @@ def test_bad_inputs_are_refused() -> None:
         S.SolveOptions(height_range=(1.1, 1.2))
     empty = S.solve_skeleton([], np.zeros((2, 0, 53, 3)), np.zeros((2, 0, 19, 3)))
     assert empty.joints_m.shape == (0, 19, 3)
+
+
+def test_a_subject_calibration_finds_the_subjects_height_and_a_marker_stuck_elsewhere() -> None:
+    """A tall subject whose elbow marker sits 2.5 cm off where the marker set puts it: the
+    calibration from their frames finds both, and the solve given it places that marker
+    where it is."""
+    rng = np.random.default_rng(11)
+    shape = BodyShape.from_height(1.92)
+    ms = MarkerSet.for_shape(shape)
+    k = MARKER_NAMES.index("LELB")
+    delta = np.array([0.025, 0.0, 0.0])  # across the bone, in the segment's frame
+    moved = replace(ms, offsets_m=ms.offsets_m + np.where(np.arange(53)[:, None] == k, delta, 0))
+    motion = make_motion("wave", seconds=2.0, rng=rng, rate_hz=5.0, shape=shape)
+    pf = pose_frames(motion, shape, moved)
+    mk, jt = pf.markers_m, pf.joints_m
+    clouds = [m[rng.random(53) > 0.1] + rng.normal(0, 0.003, (1, 3)) for m in mk]
+    est_m, est_j = mk + rng.normal(0, 0.03, mk.shape), jt + rng.normal(0, 0.03, jt.shape)
+    first = S.solve_skeleton(clouds, est_m[None], est_j[None])
+    cal = S.calibrate_subject(clouds, first)
+    assert cal.frames == len(clouds)
+    np.testing.assert_allclose(cal.marker_offsets_m[k], delta, atol=0.005)
+    assert np.delete(np.linalg.norm(cal.marker_offsets_m, axis=1), k).max() < 0.01
+    assert abs(cal.shape_z[0] * S.REFERENCE_HEIGHT_M - 1.92) < 0.03
+    again = S.solve_skeleton(clouds, est_m[None], est_j[None], subjects=[cal] * len(clouds))
+    err_first = np.linalg.norm(first.markers_m[:, k] - mk[:, k], axis=-1).mean()
+    err_again = np.linalg.norm(again.markers_m[:, k] - mk[:, k], axis=-1).mean()
+    assert err_again < 0.5 * err_first
+    with pytest.raises(ValidationError, match="at least 3"):
+        S.calibrate_subject(clouds[:2], first)
+    with pytest.raises(ValidationError, match="one per cloud"):
+        S.solve_skeleton(clouds, est_m[None], est_j[None], subjects=[cal])
