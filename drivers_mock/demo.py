@@ -139,11 +139,10 @@ def _unseen_real_figures(
     split (real motion of performers it never saw), 4 cameras, its default inference
     (ensemble and skeleton solve); the figures over the frames inside the cameras' view and
     over all frames; then the same clips on subjects the body model does not mirror (the
-    ``off-model`` protocol, under ``"off_model"``), once frame by frame and once with each
-    clip's subject calibrated from its frames (under ``"off_model"["subject_calibrated"]``).
+    ``off-model`` protocol, under ``"off_model"``), frame by frame and, from the same run, with
+    each clip's subject calibrated from its frames (under ``"off_model"["subject_calibrated"]``).
     ``progress`` makes each figure's ``(frames estimated, frames)`` callback from its stage
-    label (``"democap unseen-real"``, ``"democap off-model"``, ``"democap off-model,
-    subjects calibrated"``)."""
+    label (``"democap unseen-real"``, ``"democap off-model"``)."""
     from mocaprig.process.democap.evaluate import off_model, unseen_real
     from mocaprig.process.democap.infer import DemocapPredictor
 
@@ -156,30 +155,39 @@ def _unseen_real_figures(
         frames_per_clip=UNSEEN_REAL_FRAMES,
         progress=report,
     )
+    # one run gives both off-model figures: the calibration's first solve is frame by frame
     off = off_model(
-        predictor,
+        DemocapPredictor(predictor.checkpoint, subject_calibration=1),
         corpus_dir,
         seed=seed,
         frames_per_clip=UNSEEN_REAL_FRAMES,
         progress=report,
     )
-    calibrated = off_model(
-        DemocapPredictor(predictor.checkpoint, subject_calibration=1),
-        corpus_dir,
-        seed=seed,
-        frames_per_clip=UNSEEN_REAL_FRAMES,
-        progress=None
-        if report is None
-        else lambda name, done, total: report(f"{name}, subjects calibrated", done, total),
-    )
-    if res.report is None or off.report is None or calibrated.report is None:
+    if res.report is None or off.report is None:
         msg = f"DeMoCap unseen-real on {corpus_dir}: {res.note or off.note}"
         raise ProcessingError(msg)
-    c = calibrated.to_dict()
+    c = off.to_dict()
+    o = c.pop("frame_by_frame", c)  # no solve (a network without markers): one figure
     d = res.to_dict()
     inside = d["inside_volume"]
-    o = off.to_dict()
     keys = ("frames", "share", "mpjpe_mm", "mpmpe_mm", "pck50")
+    off_figures: dict[str, Any] = {
+        "protocol": off.protocol,
+        "holds_out": off.holds_out,
+        "frames": c["frames"],
+        "skipped_frames": c["skipped_frames"],
+        "mpjpe_mm": o["mpjpe_mm"],
+        "pck50": o["pck50"],
+        "inside_volume": {k: o["inside_volume"][k] for k in keys},
+    }
+    if c["subject_calibration"]:
+        off_figures["subject_calibrated"] = {
+            "rounds": c["subject_calibration"],
+            "frames": c["frames"],
+            "mpjpe_mm": c["mpjpe_mm"],
+            "pck50": c["pck50"],
+            "inside_volume": {k: c["inside_volume"][k] for k in keys},
+        }
     return {
         "protocol": res.protocol,
         "holds_out": res.holds_out,
@@ -200,22 +208,7 @@ def _unseen_real_figures(
         "inside_volume": {k: inside[k] for k in keys},
         "per_clip_mm": d["per_action_mm"],
         "note": res.note,
-        "off_model": {
-            "protocol": off.protocol,
-            "holds_out": off.holds_out,
-            "frames": o["frames"],
-            "skipped_frames": o["skipped_frames"],
-            "mpjpe_mm": o["mpjpe_mm"],
-            "pck50": o["pck50"],
-            "inside_volume": {k: o["inside_volume"][k] for k in keys},
-            "subject_calibrated": {
-                "rounds": c["subject_calibration"],
-                "frames": c["frames"],
-                "mpjpe_mm": c["mpjpe_mm"],
-                "pck50": c["pck50"],
-                "inside_volume": {k: c["inside_volume"][k] for k in keys},
-            },
-        },
+        "off_model": off_figures,
     }
 
 

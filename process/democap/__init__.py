@@ -33,7 +33,12 @@ if TYPE_CHECKING:
         config_by_name,
     )
     from mocaprig.process.democap.evaluate import EvalReport
-    from mocaprig.process.democap.infer import DEFAULT_ROTATIONS, DemocapPredictor, Prediction
+    from mocaprig.process.democap.infer import (
+        DEFAULT_ROTATIONS,
+        DemocapPredictor,
+        Prediction,
+        SubjectPredictions,
+    )
     from mocaprig.process.democap.live import (
         LIVE_ROTATIONS,
         LiveCamera,
@@ -59,7 +64,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "checkpoint": ("DEFAULT_CHECKPOINT", "Checkpoint", "load_checkpoint", "save_checkpoint"),
     "config": ("CONFIGS", "VARIANTS", "DemocapConfig", "config_by_name"),
     "evaluate": ("EvalReport",),
-    "infer": ("DEFAULT_ROTATIONS", "DemocapPredictor", "Prediction"),
+    "infer": ("DEFAULT_ROTATIONS", "DemocapPredictor", "Prediction", "SubjectPredictions"),
     "live": (
         "LIVE_ROTATIONS",
         "LiveCamera",
@@ -101,6 +106,7 @@ __all__ = [
     "SolveOptions",
     "SolveResult",
     "SubjectCalibration",
+    "SubjectPredictions",
     "TrainOptions",
     "build_network",
     "calibrate_subject",

@@ -219,6 +219,8 @@ class EvalReport:
             ``inside_per_torso_tilt`` over the frames inside the volume.
         subject_calibration: rounds of subject calibration per take (0: every frame on its
             own; :attr:`DemocapPredictor.subject_calibration`).
+        frame_by_frame: with ``subject_calibration``, the figures of the same run's first
+            solve, every frame on its own (over every frame, and inside the volume or None).
     """
 
     metrics: PoseMetrics
@@ -234,6 +236,7 @@ class EvalReport:
     per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
     inside_per_torso_tilt: dict[str, dict[str, Any]] = field(default_factory=dict)
     subject_calibration: int = 0
+    frame_by_frame: tuple[PoseMetrics, PoseMetrics | None] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict: the all-frames figures at the top (per-joint errors keyed by joint
@@ -248,6 +251,11 @@ class EvalReport:
         d["skipped_frames"] = self.skipped_frames
         d["per_torso_tilt"] = self.per_torso_tilt
         d["subject_calibration"] = self.subject_calibration
+        if self.frame_by_frame is not None:
+            whole, inside = self.frame_by_frame
+            d["frame_by_frame"] = _summary(whole) | {
+                "inside_volume": _summary(inside) | {"share": self.inside_share}
+            }
         d["inside_volume"] = _summary(self.inside_metrics) | {
             "share": self.inside_share,
             "per_torso_tilt": self.inside_per_torso_tilt,
@@ -324,27 +332,30 @@ def _by_subject(
     views: list[list[Camera]],
     take_of: npt.NDArray[np.intp],
     progress: Callable[[int, int], None] | None,
-) -> tuple[list[FloatArray], list[FloatArray]]:
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Each take's frames through :meth:`DemocapPredictor.predict_subject` (one subject per
-    take; a take of fewer than 3 clouds frame by frame) -> markers, joints in cloud order."""
-    pm: list[FloatArray] = [np.empty(0)] * len(clouds)
-    pj: list[FloatArray] = [np.empty(0)] * len(clouds)
+    take; a take of fewer than 3 clouds frame by frame) -> markers (B, 53, 3), joints
+    (B, 19, 3) with the calibration, then each frame solved on its own, m, in cloud order."""
+    n = len(clouds)
+    pm, pj = np.empty((n, 53, 3)), np.empty((n, 19, 3))
+    fm, fj = np.empty((n, 53, 3)), np.empty((n, 19, 3))
     done = 0
     for t in np.unique(take_of):
         rows = np.flatnonzero(take_of == t)
         cl, vw = [clouds[i] for i in rows], [views[i] for i in rows]
         if len(rows) >= 3:
-            out, _ = predictor.predict_subject(
+            res = predictor.predict_subject(
                 cl, views=vw, crop_box_m=CAPTURE_BOX_M, rounds=predictor.subject_calibration
             )
+            out, alone = res.predictions, res.frame_by_frame
         else:
-            out = predictor.predict_many(cl, views=vw, crop_box_m=CAPTURE_BOX_M)
-        for i, p in zip(rows, out, strict=True):
-            pm[i], pj[i] = p.markers_m, p.joints_m
+            out = alone = predictor.predict_many(cl, views=vw, crop_box_m=CAPTURE_BOX_M)
+        for i, p, a in zip(rows, out, alone, strict=True):
+            pm[i], pj[i], fm[i], fj[i] = p.markers_m, p.joints_m, a.markers_m, a.joints_m
         done += len(rows)
         if progress is not None:
             progress(done, len(clouds))
-    return pm, pj
+    return pm, pj, fm, fj
 
 
 def evaluate(
@@ -425,10 +436,12 @@ def evaluate(
         )
     pm: list[FloatArray] = []
     pj: list[FloatArray] = []
+    alone: tuple[FloatArray, FloatArray] | None = None
     if progress is not None:
         progress(0, len(clouds))
     if predictor.subject_calibration:
-        pm, pj = _by_subject(predictor, clouds, views, np.array(take_of), progress)
+        cal_m, cal_j, fm, fj = _by_subject(predictor, clouds, views, np.array(take_of), progress)
+        pm, pj, alone = list(cal_m), list(cal_j), (fm * 1000.0, fj * 1000.0)
     else:
         for k in range(0, len(clouds), batch):
             # the rig is calibrated: the solve knows where the cameras look
@@ -448,15 +461,20 @@ def evaluate(
     keep = list(EVAL_JOINTS)
     err = point_errors(pred_j[:, keep], true_j[:, keep])
     tilt = torso_tilt_deg(true_j)
+    inside_actions = [a for a, k in zip(actions, inside, strict=True) if k]
     met_in = None
     if ins.any():
         met_in = _metrics(
-            markers,
-            pred_j[ins],
-            true_j[ins],
-            pred_m[ins],
-            true_m[ins],
-            [a for a, k in zip(actions, inside, strict=True) if k],
+            markers, pred_j[ins], true_j[ins], pred_m[ins], true_m[ins], inside_actions
+        )
+    alone_met: tuple[PoseMetrics, PoseMetrics | None] | None = None
+    if alone is not None:
+        am, aj = alone
+        alone_met = (
+            _metrics(markers, aj, true_j, am, true_m, actions),
+            _metrics(markers, aj[ins], true_j[ins], am[ins], true_m[ins], inside_actions)
+            if ins.any()
+            else None,
         )
     return EvalReport(
         metrics=met,
@@ -472,6 +490,7 @@ def evaluate(
         per_torso_tilt=_per_tilt(err, tilt),
         inside_per_torso_tilt=_per_tilt(err[ins], tilt[ins]),
         subject_calibration=predictor.subject_calibration,
+        frame_by_frame=alone_met,
     )
 
 

@@ -117,6 +117,7 @@ __all__ = [
     "Combine",
     "DemocapPredictor",
     "Prediction",
+    "SubjectPredictions",
     "decode",
     "ensemble_rotations",
 ]
@@ -153,6 +154,21 @@ class Prediction:
     pose: FloatArray | None = None
     #: the solved body's standing height, m; None unsolved
     height_m: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SubjectPredictions:
+    """:meth:`DemocapPredictor.predict_subject`'s result, one entry per cloud in order.
+
+    Attributes:
+        predictions: solved with the subject's calibration.
+        calibration: the subject (:class:`solve.SubjectCalibration`).
+        frame_by_frame: each cloud solved on its own (what :meth:`predict_many` gives).
+    """
+
+    predictions: list[Prediction]
+    calibration: SubjectCalibration
+    frame_by_frame: list[Prediction]
 
 
 def decode(
@@ -591,11 +607,12 @@ class DemocapPredictor:
         views: Sequence[Sequence[Camera]] | None = None,
         crop_box_m: Box | None = None,
         rounds: int = 1,
-    ) -> tuple[list[Prediction], SubjectCalibration]:
+    ) -> SubjectPredictions:
         """Frames of one subject (a take, or a range-of-motion take): solved one by one
         (:meth:`predict_many`), the subject calibrated from them (:func:`calibrate_subject`:
         their segment lengths and where their markers sit), then solved again with the
         calibration, ``rounds`` times. Costs ``1 + rounds`` solves; the network runs once.
+        The first, frame-by-frame solutions come with the result.
 
         Raises:
             ValidationError: what :meth:`predict_many` raises; a predictor that does not
@@ -614,6 +631,7 @@ class DemocapPredictor:
             raise ValidationError(msg)
         _, _, mk, jt = self._hypotheses(points)
         sol = self._solved(points, mk, jt, views, crop_box_m, None)
+        alone = sol.predictions()
         cal = calibrate_subject(points, sol.result(), views=views, crop_box_m=crop_box_m)
         for k in range(rounds):
             if k:
@@ -627,7 +645,7 @@ class DemocapPredictor:
             rounds,
             float(np.median(sol.height_m)),
         )
-        return sol.predictions(), cal
+        return SubjectPredictions(sol.predictions(), cal, alone)
 
     def _solved(
         self,

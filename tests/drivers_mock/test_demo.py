@@ -92,12 +92,10 @@ def test_unseen_real_stage_draws_each_figures_frames(
         return lambda done, total: calls.setdefault(label, []).append((done, total))
 
     got = demo._unseen_real_figures(shared_data / "motion" / "corpus", 0, stage)
-    calibrated = "democap off-model, subjects calibrated"
-    assert list(calls) == ["democap unseen-real", "democap off-model", calibrated]
+    assert list(calls) == ["democap unseen-real", "democap off-model"]
     for label, frames in (
         ("democap unseen-real", got["frames"]),
         ("democap off-model", got["off_model"]["frames"]),
-        (calibrated, got["off_model"]["subject_calibrated"]["frames"]),
     ):
         assert calls[label][0] == (0, frames)
         assert calls[label][-1] == (frames, frames)

@@ -253,6 +253,16 @@ def test_evaluate_calibrates_each_takes_subject_when_the_predictor_does() -> Non
     assert calls[-1] == (n, n)
     assert len(calls) == 3  # once per take
     assert rep.metrics.mpjpe_mm < 60.0
+    # the same run's first solve, every frame on its own, is what the plain predictor gives
+    plain = evaluate(
+        DemocapPredictor(rotations=1, pose_bank=False),
+        pool=make_pool(0, "test", takes=2, seconds=0.5),
+        frames_per_take=4,
+    )
+    first = rep.to_dict()["frame_by_frame"]
+    assert first["mpjpe_mm"] == pytest.approx(plain.metrics.mpjpe_mm, abs=1e-3)
+    assert first["inside_volume"]["share"] == rep.inside_share
+    assert "frame_by_frame" not in plain.to_dict()
 
 
 def test_cli_eval_refuses_a_subject_calibration_without_the_solve(

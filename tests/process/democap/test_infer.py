@@ -384,7 +384,11 @@ def test_predict_subject_solves_again_with_the_subject_calibrated_from_the_frame
     ]
     pred = DemocapPredictor(_checkpoint(tiny_config), rotations=1, pose_bank=False)
     alone = pred.predict_many(clouds)
-    got, cal = pred.predict_subject(clouds, rounds=2)
+    res = pred.predict_subject(clouds, rounds=2)
+    got, cal = res.predictions, res.calibration
+    # the first solve is the frame-by-frame one
+    for a, f in zip(alone, res.frame_by_frame, strict=True):
+        np.testing.assert_allclose(a.joints_m, f.joints_m, atol=1e-6)
     assert cal.frames == 4
     assert cal.shape_z.shape == (17,)
     assert cal.marker_offsets_m.shape == (53, 3)
