@@ -91,11 +91,11 @@ def test_demo_command_reports_figures_against_truth(
         assert ur["inside_volume"]["mpjpe_mm"] < om["inside_volume"]["mpjpe_mm"] < 60
         assert om["inside_volume"]["pck50"] > 0.78
         # and with each clip's subject calibrated from its 8 frames
-        cal = om["subject_calibrated"]
-        assert cal["rounds"] == 1
-        assert cal["frames"] == om["frames"]
-        assert cal["inside_volume"]["mpjpe_mm"] < 60
-        assert cal["inside_volume"]["pck50"] > 0.78
+        calibrated = om["subject_calibrated"]
+        assert calibrated["rounds"] == 1
+        assert calibrated["frames"] == om["frames"]
+        assert calibrated["inside_volume"]["mpjpe_mm"] < 60
+        assert calibrated["inside_volume"]["pck50"] > 0.78
     # The replay of the demo's own recording with its calibration (every 3rd instant).
     assert report["stages"]["democap_replay"] == "done"
     rp = figures["democap_replay"]
