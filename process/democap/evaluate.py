@@ -336,9 +336,9 @@ def _by_subject(
     """Each take's frames through :meth:`DemocapPredictor.predict_subject` (one subject per
     take; a take of fewer than 3 clouds frame by frame) -> markers (B, 53, 3), joints
     (B, 19, 3) with the calibration, then each frame solved on its own, m, in cloud order."""
-    n = len(clouds)
-    pm, pj = np.empty((n, 53, 3)), np.empty((n, 19, 3))
-    fm, fj = np.empty((n, 53, 3)), np.empty((n, 19, 3))
+    n, nm, nj = len(clouds), len(MARKER_NAMES), len(DEMOCAP_JOINTS)
+    pm, pj = np.empty((n, nm, 3)), np.empty((n, nj, 3))
+    fm, fj = np.empty((n, nm, 3)), np.empty((n, nj, 3))
     done = 0
     for t in np.unique(take_of):
         rows = np.flatnonzero(take_of == t)
