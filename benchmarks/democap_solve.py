@@ -8,7 +8,8 @@ and without the limb search after them, and configurations in between; then the 
 whole solve stage (:class:`DemocapPredictor`: six turns for a sparse cloud) without and with
 the pose bank's second solve (:mod:`mocaprig.process.democap.pose_bank`; the bank placed at
 the estimated height only, and at the three heights of the default), and with the
-re-solve from its own solution after it (the default: ``DemocapPredictor.resolve_rounds``), its
+re-solve from its own solution after it (``DemocapPredictor.resolve_rounds``), without and
+with the pose prior (:mod:`mocaprig.process.democap.pose_prior`; the default), its
 time read from ``last_timings_s["solve_s"]`` (the network's passes left out); each is timed in
 rounds that interleave them (a shared machine: a load change hits all alike), as seconds
 per frame and as a ratio to the network's time in the same round, with its MPJPE against
@@ -93,7 +94,10 @@ def main() -> int:
         "predictor solve stage + pose bank at the estimated height only + re-solve": (
             DemocapPredictor(bank_search=BankSearch(height_scales=(1.0,)))
         ),
-        "predictor solve stage + pose bank + re-solve (default)": DemocapPredictor(),
+        "predictor solve stage + pose bank + re-solve, no pose prior": DemocapPredictor(
+            pose_prior=False
+        ),
+        "predictor solve stage + pose bank + re-solve + pose prior (default)": DemocapPredictor(),
     }
     rows: dict[str, list[float]] = {c: [] for c in [*configs, *predictors]}
     net_s: list[float] = []

@@ -377,6 +377,11 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         "committed bank of real poses",
     )
     lv.add_argument(
+        "--no-pose-prior",
+        action="store_true",
+        help="with --solve: solve without the committed prior over joint angles of real motion",
+    )
+    lv.add_argument(
         "--no-compile",
         action="store_true",
         help="run the network uncompiled (by default it is compiled with torch.compile when "
@@ -394,14 +399,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         epilog=_BANK_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    pb.add_argument("--out", type=Path, required=True, metavar="OUT.npz", help="the bank file")
-    pb.add_argument(
-        "--corpus",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="corpus folder (default: ../shared/data/motion/corpus beside the repository)",
-    )
+    _add_train_split_artifact_args(pb, "bank")
     pb.add_argument("--size", type=int, default=256, help="poses (default: %(default)s)")
     pb.add_argument(
         "--rate",
@@ -410,10 +408,50 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         metavar="HZ",
         help="frames per second of each clip clustered (default: %(default)s)",
     )
-    pb.add_argument("--seed", type=int, default=0, help="k-means seed (default: %(default)s)")
-    pb.add_argument("--overwrite", action="store_true", help="replace an existing bank file")
-    add_json_flag(pb)
     pb.set_defaults(func=democap_pose_bank)
+
+    pp = sub.add_parser(
+        "pose-prior",
+        help="build the skeleton solve's prior over joint angles from the corpus's train split",
+        description="Build the pose prior (a Gaussian mixture over the 27 joint angles of the "
+        "train split's poses) that every skeleton solve holds.",
+        epilog=_PRIOR_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_train_split_artifact_args(pp, "prior")
+    pp.add_argument("--components", type=int, default=8, help="Gaussians (default: %(default)s)")
+    pp.add_argument(
+        "--rate",
+        type=float,
+        default=30.0,
+        metavar="HZ",
+        help="frames per second of each clip used (default: %(default)s)",
+    )
+    pp.add_argument(
+        "--floor",
+        type=float,
+        default=5.0,
+        metavar="DEG",
+        help="standard deviation added to every angle's spread (default: %(default)s)",
+    )
+    pp.set_defaults(func=democap_pose_prior)
+
+
+def _add_train_split_artifact_args(parser: argparse.ArgumentParser, noun: str) -> None:
+    """The options of a command that builds a file from the corpus's train split."""
+    parser.add_argument(
+        "--out", type=Path, required=True, metavar="OUT.npz", help=f"the {noun} file"
+    )
+    parser.add_argument(
+        "--corpus",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="corpus folder (default: ../shared/data/motion/corpus beside the repository)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="k-means seed (default: %(default)s)")
+    parser.add_argument("--overwrite", action="store_true", help=f"replace an existing {noun} file")
+    add_json_flag(parser)
 
 
 _BANK_EPILOG = """\
@@ -425,6 +463,19 @@ committed bank (process/democap/data/pose_bank.npz) is the default of this comma
 examples:
   mocaprig democap pose-bank --out process/democap/data/pose_bank.npz --overwrite
   mocaprig democap pose-bank --corpus ~/cmu --size 128 --out bank128.npz --json
+"""
+
+
+_PRIOR_EPILOG = """\
+Every clip of the corpus's train split (process/democap/data/corpus_split.toml) is retargeted
+onto the 1.75 m reference body at --rate Hz and the frames' joint angles clustered (k-means);
+each cluster gives a Gaussian (its mean, its covariance with --floor degrees added to every
+spread). The committed prior (process/democap/data/pose_prior.npz) is the default of this
+command.
+
+examples:
+  mocaprig democap pose-prior --out process/democap/data/pose_prior.npz --overwrite
+  mocaprig democap pose-prior --corpus ~/cmu --components 4 --out prior4.npz --json
 """
 
 
@@ -470,6 +521,12 @@ def _add_inference_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the solve starts from the network's estimates only, not also from the committed "
         "bank of real poses (faster; worse where the network is far off)",
+    )
+    parser.add_argument(
+        "--no-pose-prior",
+        action="store_true",
+        help="the solve holds no prior over joint angles (the committed Gaussian mixture of "
+        "real motion's angles; worse where the cloud says little about a limb)",
     )
     _add_resolve_option(parser)
 
@@ -574,9 +631,54 @@ def democap_pose_bank(args: argparse.Namespace) -> int:
         ValidationError: no corpus folder, a missing clip, or a bad size or rate.
         RecordingError: the output exists without ``--overwrite``.
     """
-    from mocaprig.errors import ValidationError
-    from mocaprig.process.democap.corpus import load_split, read_corpus_clips
     from mocaprig.process.democap.pose_bank import build_pose_bank, save_pose_bank
+
+    clips = _train_split_clips(args)
+    bank = build_pose_bank(clips, size=args.size, rate_hz=args.rate, seed=args.seed)
+    save_pose_bank(bank, args.out, overwrite=args.overwrite)
+    summary = {"out": str(args.out), "poses": len(bank), "clips": len(bank.source)}
+    if args.json:
+        emit_json(summary)
+    else:
+        print(f"{len(bank)} poses from {len(bank.source)} clips -> {args.out}")
+    return 0
+
+
+def democap_pose_prior(args: argparse.Namespace) -> int:
+    """Handler of ``mocaprig democap pose-prior``; returns 0.
+
+    Raises:
+        ValidationError: no corpus folder, a missing clip, or a bad count, rate or floor.
+        RecordingError: the output exists without ``--overwrite``.
+    """
+    from mocaprig.process.democap.pose_prior import build_pose_prior, save_pose_prior
+
+    clips = _train_split_clips(args)
+    prior = build_pose_prior(
+        clips,
+        components=args.components,
+        rate_hz=args.rate,
+        floor_deg=args.floor,
+        seed=args.seed,
+    )
+    save_pose_prior(prior, args.out, overwrite=args.overwrite)
+    summary = {"out": str(args.out), "components": len(prior), "clips": len(prior.source)}
+    if args.json:
+        emit_json(summary)
+    else:
+        print(f"{len(prior)} components from {len(prior.source)} clips -> {args.out}")
+    return 0
+
+
+def _train_split_clips(args: argparse.Namespace) -> list[Any]:
+    """The corpus's train split clips for a command that writes ``--out`` from them.
+
+    Raises:
+        ValidationError: no corpus folder, or a missing clip.
+        RecordingError: ``--out`` exists without ``--overwrite`` (checked before the reading).
+    """
+    from mocaprig.errors import RecordingError, ValidationError
+    from mocaprig.process.democap.corpus import load_split, read_corpus_clips
 
     corpus = _corpus_dir(args.corpus)
     if corpus is None:
@@ -586,19 +688,9 @@ def democap_pose_bank(args: argparse.Namespace) -> int:
         )
         raise ValidationError(msg)
     if Path(args.out).exists() and not args.overwrite:
-        from mocaprig.errors import RecordingError
-
         msg = f"{args.out} exists; pass --overwrite to replace it"
         raise RecordingError(msg)
-    clips = read_corpus_clips(corpus, load_split().in_split("train"))
-    bank = build_pose_bank(clips, size=args.size, rate_hz=args.rate, seed=args.seed)
-    save_pose_bank(bank, args.out, overwrite=args.overwrite)
-    summary = {"out": str(args.out), "poses": len(bank), "clips": len(bank.source)}
-    if args.json:
-        emit_json(summary)
-    else:
-        print(f"{len(bank)} poses from {len(bank.source)} clips -> {args.out}")
-    return 0
+    return list(read_corpus_clips(corpus, load_split().in_split("train")))
 
 
 def _corpus_dir(arg: Path | None) -> Path | None:
@@ -692,6 +784,7 @@ def democap_eval(args: argparse.Namespace) -> int:
         rotations=args.rotations,
         solve=not args.no_solve,
         pose_bank=not args.no_pose_bank,
+        pose_prior=not args.no_pose_prior,
         resolve_rounds=args.resolve_rounds,
         subject_calibration=args.subject_calibration,
     )
@@ -777,6 +870,9 @@ def democap_eval(args: argparse.Namespace) -> int:
         "sparse_points": predictor.sparse_points,
         # poses in the bank the solve also starts from (None: the network's starts only)
         "pose_bank_poses": None if predictor.pose_bank is None else len(predictor.pose_bank),
+        "pose_prior_components": (
+            None if predictor.pose_prior is None else len(predictor.pose_prior)
+        ),
         # rounds of the re-solve from the solve's own solution (0: never)
         "resolve_rounds": predictor.resolve_rounds if predictor.solves else 0,
         "seed": args.seed,
@@ -865,6 +961,7 @@ def democap_run(args: argparse.Namespace) -> int:
             rotations=args.rotations,
             solve=not args.no_solve,
             pose_bank=not args.no_pose_bank,
+            pose_prior=not args.no_pose_prior,
             resolve_rounds=args.resolve_rounds,
         ),
         every=args.every,
@@ -936,6 +1033,7 @@ def democap_live(args: argparse.Namespace) -> int:
         rotations=args.rotations,
         solve=args.solve,
         pose_bank=not args.no_pose_bank,
+        pose_prior=not args.no_pose_prior,
         resolve_rounds=args.resolve_rounds,
         compile=not args.no_compile,
     )

@@ -98,6 +98,7 @@ from mocaprig.process.democap.model import (
     view_keypoints,
 )
 from mocaprig.process.democap.pose_bank import BankSearch, PoseBank, bank_starts, load_pose_bank
+from mocaprig.process.democap.pose_prior import PosePrior, load_pose_prior
 from mocaprig.process.democap.simdata import Box, Camera
 from mocaprig.process.democap.solve import (
     SHAPE_DIM,
@@ -314,6 +315,11 @@ class DemocapPredictor:
             activity never trained on) a bank pose is often near. True: the committed bank;
             False: none; or a :class:`PoseBank`.
         bank_search: how the bank is searched (default :class:`BankSearch`).
+        pose_prior: with the solve, a prior over the joint angles of real motion
+            (:mod:`.pose_prior`) in every solve, at the solve options'
+            ``pose_prior_weight``: what holds a limb the cloud says little about (half its
+            markers missed, a hand above every view). True: the committed prior; False:
+            none; or a :class:`PosePrior`.
         resolve_rounds: with the solve, how many times a cloud still explained poorly
             (``bank_search``'s ``energy_per_point``) is solved again from its own solution
             (module doc); 0 for never.
@@ -349,6 +355,7 @@ class DemocapPredictor:
         sparse_points: int = SPARSE_POINTS,
         pose_bank: PoseBank | bool = True,
         bank_search: BankSearch | None = None,
+        pose_prior: PosePrior | bool = True,
         resolve_rounds: int = RESOLVE_ROUNDS,
         workers: int = 1,
         subject_calibration: int = 0,
@@ -409,6 +416,10 @@ class DemocapPredictor:
         if self.solves and pose_bank is not False:
             self.pose_bank = load_pose_bank() if pose_bank is True else pose_bank
         self.bank_search = bank_search or BankSearch()
+        #: the prior over joint angles every solve holds (None: none)
+        self.pose_prior: PosePrior | None = None
+        if self.solves and pose_prior is not False:
+            self.pose_prior = load_pose_prior() if pose_prior is True else pose_prior
         #: rounds of the re-solve (module doc)
         self.resolve_rounds = int(resolve_rounds)
         #: rounds of subject calibration for frames known to show one subject (0: none)
@@ -567,6 +578,7 @@ class DemocapPredictor:
             views=views,
             crop_box_m=crop_box_m,
             subjects=subjects,
+            pose_prior=self.pose_prior,
         )
 
     def predict_many(
@@ -701,6 +713,7 @@ class DemocapPredictor:
                 views=sub_views,
                 crop_box_m=crop_box_m,
                 subjects=_pick(subjects, poor),
+                pose_prior=self.pose_prior,
             )
             better = np.flatnonzero(banked.energy < sol.energy[poor])
             sol.put(poor[better], banked, better)
@@ -719,6 +732,7 @@ class DemocapPredictor:
                 views=sub_views,
                 crop_box_m=crop_box_m,
                 subjects=_pick(subjects, todo),
+                pose_prior=self.pose_prior,
             )
             better = np.flatnonzero(again.energy < sol.energy[todo])
             sol.put(todo[better], again, better)

@@ -46,6 +46,7 @@ __all__ = [
     "bank_starts",
     "build_pose_bank",
     "load_pose_bank",
+    "reference_poses",
     "save_pose_bank",
 ]
 
@@ -155,6 +156,21 @@ def _without_heading(poses: FloatArray) -> FloatArray:
     return out
 
 
+def reference_poses(clips: Sequence[BvhClip], *, rate_hz: float) -> FloatArray:
+    """Every clip retargeted onto the reference body (:data:`.solve.REFERENCE_HEIGHT_M`),
+    thinned to about ``rate_hz``: pose vectors (N, 33), clip after clip (the frames the bank
+    and the pose prior are made from)."""
+    check_positive(rate_hz, name="rate_hz")
+    ref = BodyShape.from_height(_BANK_HEIGHT_M)
+    poses = []
+    for i, clip in enumerate(clips):
+        step = max(1, round(1.0 / (clip.frame_time_s * rate_hz)))
+        thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
+        poses.append(retarget_bvh(thin, ref).poses)
+        _log.info("clip %d/%d %s: %d frames", i + 1, len(clips), clip.name, len(thin.frames))
+    return np.concatenate(poses) if poses else np.zeros((0, POSE_DIM))
+
+
 def build_pose_bank(
     clips: Sequence[BvhClip], *, size: int = 256, rate_hz: float = 10.0, seed: int = 0
 ) -> PoseBank:
@@ -176,15 +192,7 @@ def build_pose_bank(
         raise ValidationError(msg)
     check_positive(rate_hz, name="rate_hz")
     ref = BodyShape.from_height(_BANK_HEIGHT_M)
-    poses = []
-    for i, clip in enumerate(clips):
-        step = max(1, round(1.0 / (clip.frame_time_s * rate_hz)))
-        thin = replace(clip, frames=clip.frames[::step], frame_time_s=clip.frame_time_s * step)
-        poses.append(retarget_bvh(thin, ref).poses)
-        _log.info(
-            "pose bank: clip %d/%d %s, %d frames", i + 1, len(clips), clip.name, len(thin.frames)
-        )
-    all_poses = _without_heading(np.concatenate(poses))
+    all_poses = _without_heading(reference_poses(clips, rate_hz=rate_hz))
     if len(all_poses) < size:
         msg = f"the clips give {len(all_poses)} frames at {rate_hz} Hz, fewer than size={size}"
         raise ValidationError(msg)

@@ -19,13 +19,16 @@ missing marker costs at most ``c²``)::
 
     E = Σ_markers ρ_c(d(M_m, cloud)) / σ_d²  +  Σ_points ρ_c(d(p, markers)) / σ_d²
       + Σ_joints ρ_cp(‖J_j − Ĵ_j‖) / σ_J²  +  Σ_markers ρ_cp(‖M_m − M̂_m‖) / σ_M²
-      + shape prior
+      + shape prior  +  pose prior
 
 The first two terms tie the model to the observed points both ways (each model marker to its
 nearest point, each point to its nearest model marker; nearest neighbours are found anew at
 every step, ICP-style), the next two keep it near the network's estimate ``Ĵ, M̂`` where the
 cloud says nothing (a hidden hand), the last keeps the body plausible (height 0.86–1.14 of
-the reference's, lengths ±4 %). The gate ``c`` shrinks from ``gate_start_m`` to ``gate_m``
+the reference's, lengths ±4 %), and the **pose prior** (``pose_prior``, :mod:`.pose_prior`:
+a Gaussian mixture over the 27 angles of real motion, at ``pose_prior_weight``) holds what
+neither the cloud nor the network pins down (a forearm whose markers were missed, a hand
+above every view). The gate ``c`` shrinks from ``gate_start_m`` to ``gate_m``
 over the iterations (coarse to fine).
 
 Solver: Levenberg–Marquardt with IRLS weights in torch float64, every frame an independent
@@ -68,6 +71,7 @@ import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -106,6 +110,9 @@ from mocaprig.process.body.skeleton import (
 )
 from mocaprig.process.democap.simdata import Box, Camera, check_crop_box, in_frustum_torch
 from mocaprig.validation import check_finite, check_positive, check_shape
+
+if TYPE_CHECKING:
+    from mocaprig.process.democap.pose_prior import PosePrior
 
 __all__ = [
     "REFERENCE_HEIGHT_M",
@@ -167,6 +174,10 @@ class SolveOptions:
             better (at ``selection_gate_m``). A limb the network put on the wrong side of
             the body (a hand by the shin of a body bent over) sits in a minimum that no
             gradient step leaves.
+        subject_shape_sigma: with a subject's calibration, the spread its shape is held in.
+        pose_prior_weight: with a pose prior (``solve_skeleton(pose_prior=)``), the weight
+            ``w`` of its energy (:mod:`.pose_prior`); on the validation stream 0.25–1 gave
+            the same figures within a draw's spread, 3 worse (docs/democap.md).
     """
 
     data_sigma_m: float = 0.015
@@ -193,6 +204,7 @@ class SolveOptions:
     refine_gate_start_m: float = 0.10
     limb_keep: tuple[int, ...] = (8, 2)
     subject_shape_sigma: float = 0.01
+    pose_prior_weight: float = 0.5
 
     def __post_init__(self) -> None:
         for name in (
@@ -211,6 +223,7 @@ class SolveOptions:
             "limb_gate_m",
             "limb_fine_gate_m",
             "subject_shape_sigma",
+            "pose_prior_weight",
         ):
             check_positive(float(getattr(self, name)), name=f"SolveOptions.{name}")
         lo, hi = self.height_range
@@ -571,9 +584,16 @@ class _Prior:
     zw: torch.Tensor
     m_fix: torch.Tensor
     z_start: torch.Tensor  # (P, 17) where a start's shape begins
+    # the pose prior's means (K, 27), weighted precisions (K, 27, 27) and weighted costs
+    # (K,), the same for every problem; None: no pose prior
+    pose: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
     @staticmethod
-    def of(subjects: Sequence[SubjectCalibration | None], opt: SolveOptions) -> _Prior:
+    def of(
+        subjects: Sequence[SubjectCalibration | None],
+        opt: SolveOptions,
+        pose_prior: PosePrior | None = None,
+    ) -> _Prior:
         n = len(subjects)
         z0 = np.zeros((n, _NS))
         z0[:, 0], z0[:, 1] = 1.0, opt.girth_mean
@@ -587,14 +607,20 @@ class _Prior:
                 z0[i], sig[i], fix[i] = c.shape_z, opt.subject_shape_sigma, c.marker_offsets_m
                 start[i] = c.shape_z
         t = torch.from_numpy
-        return _Prior(t(z0), t(1.0 / sig**2), t(fix), t(start))
+        pose = None
+        if pose_prior is not None:
+            w = opt.pose_prior_weight
+            pose = (t(pose_prior.means), t(w * pose_prior.precisions), t(w * pose_prior.costs))
+        return _Prior(t(z0), t(1.0 / sig**2), t(fix), t(start), pose)
 
     def rows(self, lo: int, hi: int) -> _Prior:
-        return _Prior(self.z0[lo:hi], self.zw[lo:hi], self.m_fix[lo:hi], self.z_start[lo:hi])
+        return _Prior(
+            self.z0[lo:hi], self.zw[lo:hi], self.m_fix[lo:hi], self.z_start[lo:hi], self.pose
+        )
 
     def take(self, idx: npt.NDArray[np.intp]) -> _Prior:
         i = torch.from_numpy(np.asarray(idx, np.int64))
-        return _Prior(self.z0[i], self.zw[i], self.m_fix[i], self.z_start[i])
+        return _Prior(self.z0[i], self.zw[i], self.m_fix[i], self.z_start[i], self.pose)
 
 
 @dataclass(frozen=True, slots=True)
@@ -717,6 +743,16 @@ def _energy_terms(
     lo, hi = opt.height_range
     over = torch.relu(z[:, 0] - hi) + torch.relu(lo - z[:, 0])
     e = e + ((z - data.prior.z0) ** 2 * data.prior.zw).sum(1) + (over / 0.005) ** 2
+    if w.data and data.prior.pose is not None:
+        # the component that costs least now (the mixture's bound, as IRLS picks its weights)
+        mu, prec, cost = data.prior.pose
+        d = s.angles[:, None, :] - mu[None]  # (P, K, 27)
+        en = torch.einsum("pki,kij,pkj->pk", d, prec, d) + cost[None]
+        best = en.argmin(1)
+        rows = torch.arange(len(best))
+        e = e + en[rows, best]
+        aux["pose_prec"] = prec[best]
+        aux["pose_d"] = d[rows, best]
     return e, aux
 
 
@@ -766,6 +802,10 @@ def _normal_equations(
     wb = over / 0.005**2
     a[:, o, o] += wb
     g[:, o] += wb * (z[:, 0] - torch.clamp(z[:, 0], lo, hi))
+    if "pose_prec" in aux:
+        ang = slice(ROOT_DIM, ROOT_DIM + NUM_DOF)
+        a[:, ang, ang] += aux["pose_prec"]
+        g[:, ang] += (aux["pose_prec"] @ aux["pose_d"][..., None])[..., 0]
     return a, g
 
 
@@ -1097,6 +1137,7 @@ def solve_skeleton(
     views: Sequence[Sequence[Camera]] | None = None,
     crop_box_m: Box | None = None,
     subjects: Sequence[SubjectCalibration | None] | None = None,
+    pose_prior: PosePrior | None = None,
 ) -> SolveResult:
     """Fit the body model to each fused cloud from H hypotheses of the network (module doc).
 
@@ -1111,6 +1152,9 @@ def solve_skeleton(
         crop_box_m: with ``views``, the world box ``((x0, x1), (y0, y1), (z0, z1))`` (m) the
             clouds were cropped to: a marker outside it is not charged either (no point of
             it could have survived the crop). None: no crop.
+        subjects: per cloud, its subject's calibration (:func:`calibrate_subject`) or None.
+        pose_prior: the prior over the joint angles (:mod:`.pose_prior`), added at
+            ``options.pose_prior_weight`` to every step that sees the cloud; None: none.
 
     Raises:
         ValidationError: shapes that do not match, non-finite values, a cloud with fewer
@@ -1171,7 +1215,7 @@ def solve_skeleton(
     rig = None if views is None else _Views.of(views, crop_box_m)  # (B, K) cameras, once
     flat_views = None if rig is None else rig.take(frames)
     flat_m, flat_j = tm.reshape(n_h * n_b, NUM_MARKERS, 3), tj.reshape(n_h * n_b, -1, 3)
-    prior = _Prior.of(list(subjects) if subjects is not None else [None] * n_b, opt)
+    prior = _Prior.of(list(subjects) if subjects is not None else [None] * n_b, opt, pose_prior)
     flat_prior = prior.take(frames)
     steps = _schedule(opt)
     cut = min(opt.prune_after, len(steps)) if n_h > opt.keep_starts else len(steps)

@@ -253,14 +253,22 @@ def test_a_sparse_cloud_is_solved_from_the_larger_ensemble(tiny_config: DemocapC
     ck = _checkpoint(tiny_config)
     dense, sparse = _cloud(), _cloud()[::3]
     cut = (len(dense) + len(sparse)) // 2
-    got = DemocapPredictor(ck, rotations=3, sparse_rotations=6, sparse_points=cut).predict_many(
-        [dense, sparse]
-    )
-    (three,) = DemocapPredictor(ck, rotations=3, sparse_rotations=None).predict_many([dense])
-    (six,) = DemocapPredictor(ck, rotations=6, sparse_rotations=None).predict_many([sparse])
+    # without the pose prior (it draws the untrained network's starts to one solution):
+    # this test is about which starts the solve gets
+    got = DemocapPredictor(
+        ck, rotations=3, sparse_rotations=6, sparse_points=cut, pose_prior=False
+    ).predict_many([dense, sparse])
+    (three,) = DemocapPredictor(
+        ck, rotations=3, sparse_rotations=None, pose_prior=False
+    ).predict_many([dense])
+    (six,) = DemocapPredictor(
+        ck, rotations=6, sparse_rotations=None, pose_prior=False
+    ).predict_many([sparse])
     np.testing.assert_allclose(got[0].joints_m, three.joints_m, atol=1e-9)
     np.testing.assert_allclose(got[1].joints_m, six.joints_m, atol=1e-6)
-    (from_three,) = DemocapPredictor(ck, rotations=3, sparse_rotations=None).predict_many([sparse])
+    (from_three,) = DemocapPredictor(
+        ck, rotations=3, sparse_rotations=None, pose_prior=False
+    ).predict_many([sparse])
     assert not np.allclose(got[1].joints_m, from_three.joints_m, atol=1e-6)
     # the single shot stays one network pass, sparse or not
     one = DemocapPredictor(ck, rotations=1, sparse_points=cut).predict_many([sparse])
@@ -382,7 +390,10 @@ def test_predict_subject_solves_again_with_the_subject_calibrated_from_the_frame
         make_sample(pool[0], i, np.random.default_rng(i), augment=False, size_px=64).raw_m
         for i in (0, 10, 20, 29)
     ]
-    pred = DemocapPredictor(_checkpoint(tiny_config), rotations=1, pose_bank=False)
+    # without the pose prior first: the calibration alone holds the heights together
+    pred = DemocapPredictor(
+        _checkpoint(tiny_config), rotations=1, pose_bank=False, pose_prior=False
+    )
     alone = pred.predict_many(clouds)
     res = pred.predict_subject(clouds, rounds=2)
     got, cal = res.predictions, res.calibration
@@ -393,10 +404,18 @@ def test_predict_subject_solves_again_with_the_subject_calibrated_from_the_frame
     assert cal.shape_z.shape == (17,)
     assert cal.marker_offsets_m.shape == (53, 3)
     assert len(got) == 4
-    # one body for every frame: the heights agree far better than frame by frame
+    # one body for every frame: the heights agree far better than frame by frame (the
+    # untrained network's starts: 0.65 m apart frame by frame, 0.03-0.06 m calibrated,
+    # depending on the numerical libraries' build)
     heights = np.array([p.height_m for p in got])
-    assert np.ptp(heights) < 0.03
+    assert np.ptp(heights) < 0.1 * np.ptp([p.height_m for p in alone])
+    assert np.ptp(heights) < 0.08
     assert any(not np.allclose(a.joints_m, g.joints_m) for a, g in zip(alone, got, strict=True))
+    # with the prior (the default) too, far better than frame by frame
+    held = DemocapPredictor(_checkpoint(tiny_config), rotations=1, pose_bank=False)
+    res = held.predict_subject(clouds, rounds=2)
+    spread = np.ptp([p.height_m for p in res.predictions])
+    assert spread < 0.5 * np.ptp([p.height_m for p in res.frame_by_frame])
     with pytest.raises(ValidationError, match="at least 3"):
         pred.predict_subject(clouds[:2])
     with pytest.raises(ValidationError, match="rounds"):

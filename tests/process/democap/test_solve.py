@@ -27,6 +27,7 @@ from mocaprig.process.body import (
     rest_offsets,
 )
 from mocaprig.process.democap import solve as S
+from mocaprig.process.democap.pose_prior import load_pose_prior
 from mocaprig.process.democap.simdata import in_frustum, pose_frames, sample_rig
 
 
@@ -62,7 +63,7 @@ def _mpjpe_mm(a: np.ndarray, b: np.ndarray) -> float:
 def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
     """The analytic JᵀWr equals half the autograd gradient of the energy, for every term,
     with the body model's shape prior and with a calibrated subject's (their marker
-    corrections held)."""
+    corrections held), and the committed pose prior."""
     _, mk, jt = _take(3)
     rng = np.random.default_rng(0)
     clouds = [_cloud(m, rng) for m in mk[:4]]
@@ -84,7 +85,7 @@ def test_normal_equations_are_the_gauss_newton_model_of_the_energy() -> None:
         marker_offsets_m=rng.normal(0, 0.01, (53, 3)),
         frames=8,
     )
-    prior = S._Prior.of([subject, None, subject, None], opt)
+    prior = S._Prior.of([subject, None, subject, None], opt, load_pose_prior())
     n = max(len(c) for c in clouds)
     cloud = np.full((4, n, 3), 1e3)
     mask = np.zeros((4, n))
