@@ -195,10 +195,11 @@ examples:
 
 The demo runs the whole toolkit as far as it exists: simulate, record, check the recording,
 Vicon I/O, calibration, DeMoCap on held-out simulated takes, the DeMoCap replay of the recording
-(demo-out/results.mcap, .c3d, .csv; every 3rd rig instant) and 1 s of `democap live` on the
-mock rig of the same world (demo-out/live.mcap), then EventCap on a short simulated DAVIS take
-of fast strikes, scored with the paper's *_linear and *_all baselines (synthetic detections);
-with --davis-dvs, `eventcap run` on the demo's own recording too.
+(demo-out/results.mcap, .c3d, .csv; every 3rd rig instant), the actor calibrated from the
+recording (demo-out/democap_subject.json) and the replay solved as them, 1 s of `democap live`
+on the mock rig of the same world (demo-out/live.mcap), then EventCap on a short simulated
+DAVIS take of fast strikes, scored with the paper's *_linear and *_all baselines (synthetic
+detections); with --davis-dvs, `eventcap run` on the demo's own recording too.
 Every DeMoCap figure is labelled with its protocol: the simulated ones are in-distribution
 (simulated actions, bodies and D415 model like training's); where the motion corpus is beside
 the clone (../shared/data/motion/corpus, or --corpus DIR), the committed checkpoint is also
@@ -317,6 +318,7 @@ def _demo(args: argparse.Namespace) -> int:
     d = f.get("democap", {})
     ur = f.get("democap_unseen_real", {})
     rp = f.get("democap_replay", {})
+    sj = f.get("democap_subject", {})
     lv = f.get("democap_live", {})
     pr = f.get("process", {})
     ec = f.get("eventcap", {})
@@ -383,6 +385,15 @@ def _demo(args: argparse.Namespace) -> int:
             else f"  DeMoCap replay: {rp.get('error', 'not run')}"
         ),
         (
+            f"  DeMoCap subject from {sj['instants']} instants: standing height "
+            f"{sj['standing_height_m']:.3f} m (true {sj['true_height_m']:.3f} m); the replay "
+            f"solved as them (1 instant in {sj['replay_every']}): MPJPE {sj['mpjpe_mm']:.1f} mm, "
+            f"MPMPE {sj['mpmpe_mm']:.1f} mm (frame by frame at the same instants "
+            f"{sj['frame_by_frame_mpjpe_mm']:.1f} / {sj['frame_by_frame_mpmpe_mm']:.1f} mm)"
+            if "error" not in sj and sj
+            else f"  DeMoCap subject: {sj.get('error', 'not run')}"
+        ),
+        (
             f"  DeMoCap live [{lv['protocol']}] on the mock rig ({len(lv['cameras'])} D415s, "
             f"{lv['seconds']:g} s): "
             f"{lv['instants']} instants, MPJPE {lv.get('mpjpe_mm', float('nan')):.1f} mm vs "
@@ -420,6 +431,7 @@ def _demo(args: argparse.Namespace) -> int:
         f"  session (truth + Vicon C3D/CSV + session.mcap): {report.session_dir}",
         f"  calibration: {c.get('calibration_file', '-')}",
         f"  DeMoCap replay: {rp.get('results_mcap', '-')} (+ .c3d, .csv)",
+        f"  DeMoCap subject: {sj.get('subject_file', '-')}",
         f"  DeMoCap live:   {lv.get('out', '-')}",
         f"  DeMoCap skeleton vs truth: {rp.get('skeleton_figure', '-')}",
         f"  mocaprig process: {pr.get('out', '-')}",

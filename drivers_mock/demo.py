@@ -15,15 +15,17 @@ there, on its test split of real motion (:func:`process.democap.evaluate.unseen_
 headline protocol) -> DeMoCap replay of the
 recording with that calibration (:func:`process.democap.run_replay`: ``results.mcap``,
 ``results.c3d``, ``results.csv``; every :data:`REPLAY_EVERY`-th rig instant) scored against the
-truth, with the reconstructed skeleton against the truth (:data:`SKELETON_FIGURE`) -> DeMoCap
-live on the mock rig -> ``mocaprig process`` on the session (in-process; run again, it keeps
-the finished outputs) -> EventCap on a short simulated DAVIS take with truth, scored with the
-paper's baselines (:func:`process.eventcap.evaluate.evaluate_take`; synthetic detections,
-labelled so) -> with ``davis_dvs``, ``eventcap run`` on the demo's own recording (synthetic
-detections and the simulator's true DAVIS calibration standing in for ``calibrate board``),
-scored against the truth -> a summary figure and report. Stages not built yet are listed in the
-report as pending, never faked; a stage that fails is reported as failed and the command exits
-1. ``progress`` reports every stage.
+truth, with the reconstructed skeleton against the truth (:data:`SKELETON_FIGURE`) -> the
+actor calibrated from the recording (:func:`process.democap.replay.fit_subject`,
+:data:`SUBJECT_FILE`) and the replay solved as that subject -> DeMoCap live on the mock rig
+-> ``mocaprig process`` on the session (in-process; run again, it keeps the finished outputs)
+-> EventCap on a short simulated DAVIS take with truth, scored with the paper's baselines
+(:func:`process.eventcap.evaluate.evaluate_take`; synthetic detections, labelled so) -> with
+``davis_dvs``, ``eventcap run`` on the demo's own recording (synthetic detections and the
+simulator's true DAVIS calibration standing in for ``calibrate board``), scored against the
+truth -> a summary figure and report. Stages not built yet are listed in the report as pending,
+never faked; a stage that fails is reported as failed and the command exits 1. ``progress``
+reports every stage.
 """
 
 from __future__ import annotations
@@ -32,9 +34,9 @@ import json
 import logging
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -47,10 +49,14 @@ from mocaprig.drivers_mock.truth import Truth, read_truth
 from mocaprig.errors import MocaprigError, ProcessingError, RecordingError
 from mocaprig.json_values import to_jsonable
 
+if TYPE_CHECKING:
+    from mocaprig.process.democap.replay import ReplayResult
+
 __all__ = [
     "CALIBRATION_REPORT",
     "REPLAY_EVERY",
     "SKELETON_FIGURE",
+    "SUBJECT_FILE",
     "UNSEEN_REAL_FRAMES",
     "DemoReport",
     "run_demo",
@@ -90,6 +96,12 @@ _EVENTCAP_RUN_STAGES = {"index": "indexing", "batches": "batches", "write": "wri
 #: The demo replays every n-th rig instant of its recording (10 Hz of the 30 Hz D415s) to keep
 #: its extra time small.
 REPLAY_EVERY = 3
+#: Instants of the recording the demo calibrates its actor from (``democap subject``).
+SUBJECT_INSTANTS = 24
+#: The demo's subject file (in its folder).
+SUBJECT_FILE = "democap_subject.json"
+#: The replay with the calibrated subject runs on every n-th instant (half the replay's).
+SUBJECT_REPLAY_EVERY = 2 * REPLAY_EVERY
 #: Seconds of the mock rig the demo runs ``democap live`` on.
 LIVE_SECONDS = 1.0
 #: What the demo's simulated DeMoCap figures hold out: they are the ``in-distribution``
@@ -218,9 +230,10 @@ def _replay_figures(
     calib_path: Path,
     truth: Truth,
     progress: Progress | None = None,
-) -> dict[str, Any]:
+) -> tuple[dict[str, Any], ReplayResult]:
     """DeMoCap replay of the demo's recording with its calibration, scored against the truth;
-    writes :data:`SKELETON_FIGURE` (the reconstructed skeleton against the truth)."""
+    writes :data:`SKELETON_FIGURE` (the reconstructed skeleton against the truth). Returns
+    the figures and the replay."""
     from mocaprig.drivers_mock.truth import democap_truth_at
     from mocaprig.process.democap import run_replay, score_replay
 
@@ -257,6 +270,77 @@ def _replay_figures(
         "solve": result.solve,
         "seconds": s["seconds"],
         "timings_s": s["timings_s"],
+        "protocol": "in-distribution",
+        "holds_out": _IN_DISTRIBUTION_RECORDING,
+    }, result
+
+
+def _subject_figures(
+    sim: SimulationResult,
+    out: Path,
+    calib_path: Path,
+    truth: Truth,
+    replay: ReplayResult,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """``democap subject`` on the demo's recording (:data:`SUBJECT_INSTANTS` instants), its
+    height against the simulated actor's, then the replay with every instant solved as that
+    subject (every :data:`SUBJECT_REPLAY_EVERY`-th instant) against the frame-by-frame
+    replay at the same instants, both scored against the truth."""
+    from mocaprig.drivers_mock.truth import democap_truth_at
+    from mocaprig.process.democap import DemocapPredictor, run_replay, score_replay
+    from mocaprig.process.democap.replay import fit_subject
+    from mocaprig.process.democap.subject import save_subject
+
+    session = sim.out_dir / "session.mcap"
+    fit = fit_subject(session, calib_path, instants=SUBJECT_INSTANTS)
+    path = save_subject(
+        fit.subject,
+        out / SUBJECT_FILE,
+        source=f"{session}: {fit.t_ref_ns.size} of {fit.instants_total} instants",
+        overwrite=True,
+    )
+    result = run_replay(
+        session,
+        calib_path,
+        out=out / "results_subject.mcap",
+        every=SUBJECT_REPLAY_EVERY,
+        overwrite=True,
+        predictor=DemocapPredictor(subject=fit.subject),
+        progress=progress,
+    )
+    true_m, true_j = democap_truth_at(truth, result.t_ref_ns, clock=result.reference_clock)
+    as_subject = score_replay(result, true_j, true_m)
+    rows = np.flatnonzero(np.isin(replay.t_ref_ns, result.t_ref_ns))
+    same = np.isin(result.t_ref_ns, replay.t_ref_ns[rows])
+    alone = replace(
+        replay,
+        t_ref_ns=replay.t_ref_ns[rows],
+        joints_m=replay.joints_m[rows],
+        markers_m=replay.markers_m[rows],
+    )
+    frame_by_frame = score_replay(alone, true_j[same], true_m[same])
+    true_height = float(truth.meta["body_shape"]["height_m"])
+    heights = fit.summary()["frame_by_frame_height_m"]
+    return {
+        "subject_file": str(path),
+        "instants": int(fit.t_ref_ns.size),
+        "instants_total": fit.instants_total,
+        "standing_height_m": fit.subject.standing_height_m,
+        "true_height_m": true_height,
+        "height_error_mm": 1e3 * (fit.subject.standing_height_m - true_height),
+        "frame_by_frame_height_m": heights,
+        "fit_seconds": fit.seconds,
+        "replay_every": result.every,
+        "replay_instants": result.instants,
+        "mpjpe_mm": as_subject.mpjpe_mm,
+        "mpmpe_mm": as_subject.mpmpe_mm,
+        "pck50": as_subject.pck50,
+        "frame_by_frame_instants": int(rows.size),
+        "frame_by_frame_mpjpe_mm": frame_by_frame.mpjpe_mm,
+        "frame_by_frame_mpmpe_mm": frame_by_frame.mpmpe_mm,
+        "results_mcap": str(result.outputs["mcap"]),
+        "seconds": result.timings_s.get("total_s"),
         "protocol": "in-distribution",
         "holds_out": _IN_DISTRIBUTION_RECORDING,
     }
@@ -994,13 +1078,14 @@ def run_demo(
     timings["democap_unseen_real_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
+    replayed: ReplayResult | None = None
     calib_file = figures["calibration"].get("calibration_file")
     if calib_file is None:
         figures["democap_replay"] = {"error": "no calibration (the calibration stage failed)"}
         stages["democap_replay"] = "skipped: needs the calibration, whose stage failed"
     else:
         try:
-            figures["democap_replay"] = _replay_figures(
+            figures["democap_replay"], replayed = _replay_figures(
                 sim, out, Path(calib_file), truth, stage("democap replay")
             )
             stages["democap_replay"] = "done"
@@ -1009,6 +1094,22 @@ def run_demo(
             figures["democap_replay"] = {"error": str(err)}
             stages["democap_replay"] = f"failed: {err}"
     timings["democap_replay_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    if replayed is None or calib_file is None:
+        figures["democap_subject"] = {"error": "no replay (its stage failed or was skipped)"}
+        stages["democap_subject"] = "skipped: needs the replay, whose stage did not run"
+    else:
+        try:
+            figures["democap_subject"] = _subject_figures(
+                sim, out, Path(calib_file), truth, replayed, stage("democap subject")
+            )
+            stages["democap_subject"] = "done"
+        except MocaprigError as err:
+            _log.error("DeMoCap subject stage failed: %s", err)
+            figures["democap_subject"] = {"error": str(err)}
+            stages["democap_subject"] = f"failed: {err}"
+    timings["democap_subject_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     if calib_file is None:

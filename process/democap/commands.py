@@ -22,6 +22,7 @@ __all__ = [
     "democap_eval",
     "democap_live",
     "democap_run",
+    "democap_subject",
     "democap_train",
     "register_democap",
 ]
@@ -36,6 +37,8 @@ examples:
   mocaprig democap eval --cameras 2 --seed 3
   mocaprig democap eval --motion walk.bvh --json                a motion never trained on
   mocaprig democap run session.mcap --calib calib.toml --out results.mcap   replay a recording
+  mocaprig democap subject rom.mcap --calib calib.toml --out actor.json   calibrate the actor
+  mocaprig democap run session.mcap --calib calib.toml --out r.mcap --subject actor.json
   mocaprig democap live --calib calib.toml --out live.mcap          live from the D415 rig
   mocaprig democap train --variant pose --out pose.pt --epochs 4   a baseline (docs/democap.md)
 """
@@ -144,6 +147,23 @@ examples:
   mocaprig democap run sim/session.mcap --calib calib.toml --out r.mcap --every 3 --json
   mocaprig democap run s.mcap --calib calib.toml --out r.mcap --c3d r_pose.c3d --csv r.csv
   mocaprig democap run s.mcap --calib calib.toml --out r.mcap --ckpt lite.pt --overwrite
+  mocaprig democap run s.mcap --calib calib.toml --out r.mcap --subject actor.json
+"""
+
+_SUBJECT_EPILOG = """\
+What a marker-based system does with a range-of-motion trial: the actor's segment lengths,
+girth and where each marker sits on its segment, measured from a recording of them (one actor
+in view). --instants instants spread evenly over the recording go through the replay's
+pipeline; each cloud is solved on its own, the subject is calibrated from the half the solve
+explains best (medians), and every cloud is solved again with it (--rounds times). The
+subject file (JSON: standing height, scale, girth, segment lengths in m, marker offsets in mm
+in each segment's frame) is then given to `democap run --subject` or `democap live --solve
+--subject`: every instant is solved as that body instead of sampling it frame by frame.
+
+examples:
+  mocaprig democap subject rom.mcap --calib calib.toml --out actor.json
+  mocaprig democap subject rom.mcap --calib calib.toml --out actor.json --instants 80 --json
+  mocaprig democap run take.mcap --calib calib.toml --out take_results.mcap --subject actor.json
 """
 
 
@@ -327,8 +347,43 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
     )
     _add_inference_options(rn)
+    _add_subject_option(rn, "every instant is solved as this subject")
     add_json_flag(rn)
     rn.set_defaults(func=democap_run)
+
+    sj = sub.add_parser(
+        "subject",
+        help="calibrate the actor of a recording (segment lengths, marker placement) into a "
+        "subject file for run/live",
+        description="Calibrate a recording's actor into a subject file (JSON).",
+        epilog=_SUBJECT_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sj.add_argument("session", metavar="SESSION.mcap", type=Path, help="a recording of the actor")
+    sj.add_argument(
+        "--calib", type=Path, required=True, metavar="CALIB", help="calibration (.toml or .json)"
+    )
+    sj.add_argument(
+        "--out", type=Path, required=True, metavar="SUBJECT.json", help="subject file to write"
+    )
+    sj.add_argument(
+        "--instants",
+        type=int,
+        default=40,
+        metavar="N",
+        help="instants to calibrate from, spread over the recording (default: %(default)s)",
+    )
+    sj.add_argument(
+        "--rounds", type=int, default=1, help="calibration rounds (default: %(default)s)"
+    )
+    sj.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    sj.add_argument("--ckpt", default=None, help="checkpoint (default: the committed lite one)")
+    sj.add_argument("--no-crop", action="store_true", help="keep points outside the capture box")
+    sj.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (default: %(default)s)"
+    )
+    add_json_flag(sj)
+    sj.set_defaults(func=democap_subject)
 
     lv = sub.add_parser(
         "live",
@@ -388,6 +443,7 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
         "the cameras start, 10-30 s once, then about a quarter faster a pass)",
     )
     _add_resolve_option(lv)
+    _add_subject_option(lv, "with --solve: every instant is solved as this subject")
     add_json_flag(lv)
     lv.set_defaults(func=democap_live)
 
@@ -529,6 +585,30 @@ def _add_inference_options(parser: argparse.ArgumentParser) -> None:
         "real motion's angles; worse where the cloud says little about a limb)",
     )
     _add_resolve_option(parser)
+
+
+def _add_subject_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument(
+        "--subject",
+        type=Path,
+        default=None,
+        metavar="SUBJECT.json",
+        help=f"a subject file (`democap subject`): {what}, its segment lengths and marker "
+        "placement held (default: every instant on its own)",
+    )
+
+
+def _subject(args: argparse.Namespace, *, solves: bool) -> Any:
+    """The ``--subject`` file read, or None; refused without the solve."""
+    if args.subject is None:
+        return None
+    from mocaprig.errors import ValidationError
+    from mocaprig.process.democap.subject import load_subject
+
+    if not solves:
+        msg = "--subject is used by the skeleton solve; drop --no-solve (or give --solve live)"
+        raise ValidationError(msg)
+    return load_subject(args.subject)
 
 
 def _add_resolve_option(parser: argparse.ArgumentParser) -> None:
@@ -948,6 +1028,7 @@ def democap_run(args: argparse.Namespace) -> int:
 
         msg = f"--threads must be >= 1, got {args.threads}"
         raise ValidationError(msg)
+    subject = _subject(args, solves=not args.no_solve)
     torch.set_num_threads(args.threads)
     bar = ProgressBar("democap run", unit="instants")
     result = run_replay(
@@ -963,6 +1044,7 @@ def democap_run(args: argparse.Namespace) -> int:
             pose_bank=not args.no_pose_bank,
             pose_prior=not args.no_pose_prior,
             resolve_rounds=args.resolve_rounds,
+            subject=subject,
         ),
         every=args.every,
         overwrite=args.overwrite,
@@ -982,6 +1064,58 @@ def democap_run(args: argparse.Namespace) -> int:
     )
     for kind, path in result.outputs.items():
         print(f"  {kind:<4} -> {path}")
+    return 0
+
+
+def democap_subject(args: argparse.Namespace) -> int:
+    """Handler of ``mocaprig democap subject``; returns 0."""
+    import torch
+
+    from mocaprig.errors import CalibrationError, ValidationError
+    from mocaprig.process.democap.infer import DemocapPredictor
+    from mocaprig.process.democap.replay import DEFAULT_CROP_BOX_M, fit_subject
+    from mocaprig.process.democap.subject import save_subject
+
+    if args.threads < 1:
+        msg = f"--threads must be >= 1, got {args.threads}"
+        raise ValidationError(msg)
+    out = Path(args.out)
+    if out.suffix != ".json":
+        msg = f"{out}: a subject file is .json"
+        raise CalibrationError(msg)
+    if out.exists() and not args.overwrite:
+        msg = f"subject file {out} exists; pass --overwrite to replace it"
+        raise CalibrationError(msg)
+    torch.set_num_threads(args.threads)
+    bar = ProgressBar("democap subject", unit="instants")
+    fit = fit_subject(
+        args.session,
+        args.calib,
+        instants=args.instants,
+        rounds=args.rounds,
+        predictor=DemocapPredictor(None if args.ckpt is None else Path(args.ckpt)),
+        crop_box_m=None if args.no_crop else DEFAULT_CROP_BOX_M,
+        progress=bar,
+    )
+    bar.finish()
+    n = int(fit.t_ref_ns.size)
+    save_subject(
+        fit.subject,
+        out,
+        source=f"{args.session}: {n} of {fit.instants_total} instants",
+        overwrite=args.overwrite,
+    )
+    summary = {**fit.summary(), "out": str(out)}
+    if args.json:
+        emit_json(summary)
+        return 0
+    spread = summary["frame_by_frame_height_m"]
+    print(
+        f"{args.session}: subject of standing height {fit.subject.standing_height_m:.3f} m "
+        f"from {n} instants ({fit.skipped_instants} skipped; frame by frame "
+        f"{spread['p10']:.3f}-{spread['p90']:.3f} m), {fit.seconds:.1f} s"
+    )
+    print(f"  subject -> {out}")
     return 0
 
 
@@ -1026,6 +1160,7 @@ def democap_live(args: argparse.Namespace) -> int:
     if args.threads < 1:
         msg = f"--threads must be >= 1, got {args.threads}"
         raise ValidationError(msg)
+    subject = _subject(args, solves=args.solve)
     calibration = read_calibration(args.calib)
     torch.set_num_threads(args.threads)
     predictor = DemocapPredictor(
@@ -1036,6 +1171,7 @@ def democap_live(args: argparse.Namespace) -> int:
         pose_prior=not args.no_pose_prior,
         resolve_rounds=args.resolve_rounds,
         compile=not args.no_compile,
+        subject=subject,
     )
     if args.mock and args.seconds > args.world_seconds:
         msg = f"--seconds {args.seconds} exceeds the simulated session (--world-seconds)"

@@ -333,6 +333,10 @@ class DemocapPredictor:
             subject (:func:`evaluate.evaluate`: a take) estimate them with
             :meth:`predict_subject` (calibrated, then solved again); this many rounds of
             calibration, 0 for none (the default: every frame on its own).
+        subject: with the solve, a calibrated subject (:mod:`.subject`, a subject file) every
+            cloud is solved as: its lengths and marker placement held, not sampled frame by
+            frame (None: every frame on its own). Given to every solve: for clouds of
+            someone else it is wrong.
 
     Raises:
         ProcessingError: the checkpoint is missing or does not match (see
@@ -359,6 +363,7 @@ class DemocapPredictor:
         resolve_rounds: int = RESOLVE_ROUNDS,
         workers: int = 1,
         subject_calibration: int = 0,
+        subject: SubjectCalibration | None = None,
     ) -> None:
         self._turns = ensemble_rotations(int(rotations))
         # the sparse ensemble's turns that the ensemble does not run already
@@ -424,6 +429,11 @@ class DemocapPredictor:
         self.resolve_rounds = int(resolve_rounds)
         #: rounds of subject calibration for frames known to show one subject (0: none)
         self.subject_calibration = int(subject_calibration) if self.solves else 0
+        if subject is not None and not isinstance(subject, SubjectCalibration):
+            msg = f"subject must be a SubjectCalibration (load_subject), got {type(subject)}"  # type: ignore[unreachable]
+            raise ValidationError(msg)
+        #: the subject every cloud is solved as (None: every frame on its own)
+        self.subject = subject if self.solves else None
         #: seconds spent per stage by the last :meth:`predict_many` call
         self.last_timings_s: dict[str, float] = {}
 
@@ -610,7 +620,8 @@ class DemocapPredictor:
                 Prediction(markers_m=m, joints_m=j) for m, j in zip(markers, joints, strict=True)
             ]
         _, _, mk, jt = self._hypotheses(points)
-        return self._solved(points, mk, jt, views, crop_box_m, None).predictions()
+        subjects = None if self.subject is None else [self.subject] * len(points)
+        return self._solved(points, mk, jt, views, crop_box_m, subjects).predictions()
 
     def predict_subject(
         self,
@@ -624,7 +635,8 @@ class DemocapPredictor:
         (:meth:`predict_many`), the subject calibrated from them (:func:`calibrate_subject`:
         their segment lengths and where their markers sit), then solved again with the
         calibration, ``rounds`` times. Costs ``1 + rounds`` solves; the network runs once.
-        The first, frame-by-frame solutions come with the result.
+        The first, frame-by-frame solutions come with the result. It calibrates anew: the
+        predictor's :attr:`subject`, if any, is not used.
 
         Raises:
             ValidationError: what :meth:`predict_many` raises; a predictor that does not

@@ -89,7 +89,8 @@ from mocaprig.process.democap.instants import (
     group_instants,
 )
 from mocaprig.process.democap.live import LiveCamera, LivePipeline
-from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Box, check_crop_box
+from mocaprig.process.democap.simdata import CAPTURE_BOX_M, Box, Camera, check_crop_box
+from mocaprig.process.democap.solve import SubjectCalibration
 from mocaprig.process.metrics import PoseMetrics, pose_metrics
 from mocaprig.process.outputs import replace_atomically
 from mocaprig.process.scene import points_scene
@@ -102,13 +103,16 @@ __all__ = [
     "JOINT_LABEL_PREFIX",
     "MARKERS_TOPIC",
     "METADATA_NAME",
+    "SUBJECT_INSTANTS",
     "Grouping",
     "Instant",
     "ReplayPlan",
     "ReplayResult",
     "ReplaySpan",
+    "SubjectFit",
     "cloud_scene",
     "default_outputs",
+    "fit_subject",
     "group_instants",
     "join_spans",
     "marker_scene",
@@ -167,6 +171,8 @@ class ReplayResult:
         rotations: size of the rotation ensemble used (1: single shot).
         solve: whether the estimates are skeleton solves (:mod:`.solve`; else the
             network's own).
+        subject_height_m: the standing height (m) of the calibrated subject every instant
+            was solved as (:mod:`.subject`); None: every instant on its own.
         timings_s: Wall seconds per stage (``measure_s``, ``network_s``, ``write_s``,
             ``total_s``; summed over spans when the replay ran in spans).
         clouds_m: The N fused input clouds ``(Mi, 3)`` (world, m); empty when not kept.
@@ -190,6 +196,7 @@ class ReplayResult:
     checkpoint: str = ""
     rotations: int = 1
     solve: bool = False
+    subject_height_m: float | None = None
     timings_s: Mapping[str, float] = field(default_factory=dict)
     clouds_m: tuple[F64, ...] = field(default=(), repr=False)
 
@@ -229,6 +236,7 @@ class ReplayResult:
             "checkpoint": self.checkpoint,
             "rotations": self.rotations,
             "solve": self.solve,
+            "subject_height_m": self.subject_height_m,
             "outputs": {k: str(v) for k, v in self.outputs.items()},
             "seconds": self.timings_s.get("total_s"),
             "timings_s": dict(self.timings_s),
@@ -415,6 +423,8 @@ class ReplaySpan:
         checkpoint: ``"<config> (<epochs> epochs)"`` of the network.
         rotations: Size of its rotation ensemble.
         solve: Whether its estimates are skeleton solves.
+        subject_height_m: Standing height (m) of the subject it solved every instant as
+            (None: none).
     """
 
     start: int
@@ -430,6 +440,7 @@ class ReplaySpan:
     checkpoint: str = ""
     rotations: int = 1
     solve: bool = False
+    subject_height_m: float | None = None
 
 
 def _check_every(every: int) -> None:
@@ -559,17 +570,7 @@ def replay_span(
     cal, _ = _read_calibration(calibration)
     pred = predictor if predictor is not None else DemocapPredictor()
     selected = plan.instants[start:stop]
-    # The camera's own intrinsics (camera_info) and the calibrated pose.
-    live_cams = [
-        LiveCamera.from_calibration(
-            cal,
-            c,
-            K=plan.intrinsics[c].k,
-            distortion=plan.intrinsics[c].distortion,
-            depth_scale_m=plan.index[c].depth_scale_m,
-        )
-        for c in plan.cameras
-    ]
+    live_cams = _live_cameras(plan, cal)
     clouds: list[F64] = []
     preds: list[Prediction] = []
     kept: list[tuple[int, int]] = []  # (t_ref_ns, cameras)
@@ -612,7 +613,23 @@ def replay_span(
         checkpoint=f"{ck.config.name} ({ck.epoch} epochs)",
         rotations=pred.rotations,
         solve=pred.solves,
+        subject_height_m=None if pred.subject is None else pred.subject.standing_height_m,
     )
+
+
+def _live_cameras(plan: ReplayPlan, cal: Calibration) -> list[LiveCamera]:
+    """The plan's cameras as the pipeline measures them: each camera's own intrinsics (its
+    recorded ``camera_info``) and its calibrated pose."""
+    return [
+        LiveCamera.from_calibration(
+            cal,
+            c,
+            K=plan.intrinsics[c].k,
+            distortion=plan.intrinsics[c].distortion,
+            depth_scale_m=plan.index[c].depth_scale_m,
+        )
+        for c in plan.cameras
+    ]
 
 
 def _empty(points: int) -> F64:
@@ -639,7 +656,7 @@ def join_spans(
     if not tiles or any(a[1] != b[0] for a, b in pairwise(edges)):
         msg = f"spans {edges} do not cover the plan's {len(plan.instants)} instants once"
         raise ValidationError(msg)
-    nets = {(s.checkpoint, s.rotations, s.solve) for s in ordered}
+    nets = {(s.checkpoint, s.rotations, s.solve, s.subject_height_m) for s in ordered}
     if len(nets) != 1:
         msg = f"the spans were processed by different networks: {sorted(nets)}"
         raise ValidationError(msg)
@@ -653,7 +670,7 @@ def join_spans(
             "points after the merge; are the markers lit and inside the capture box?"
         )
         raise ProcessingError(msg)
-    checkpoint, rotations, solve = nets.pop()
+    checkpoint, rotations, solve, subject_height_m = nets.pop()
     return ReplayResult(
         session=plan.session,
         outputs=dict(outputs),
@@ -673,6 +690,7 @@ def join_spans(
         checkpoint=checkpoint,
         rotations=rotations,
         solve=solve,
+        subject_height_m=subject_height_m,
         clouds_m=clouds,
         timings_s={
             "measure_s": sum(s.measure_s for s in ordered),
@@ -791,6 +809,168 @@ def run_replay(
         result.camera_histogram,
         result.mean_points,
         result.timings_s["total_s"],
+    )
+    return result
+
+
+#: Instants :func:`fit_subject` calibrates from by default, spread evenly over the recording.
+SUBJECT_INSTANTS: Final = 40
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SubjectFit:
+    """A subject calibrated from a recording of them (:func:`fit_subject`).
+
+    Attributes:
+        subject: The calibration (:func:`.subject.save_subject` writes it).
+        session: The recording.
+        t_ref_ns: ``(N,)`` reference times of the instants it was made from (ns).
+        instants_total: Instants in the recording.
+        skipped_instants: Chosen instants whose fused cloud had under 2 points.
+        rounds: Rounds of calibration.
+        frame_heights_m: ``(N,)`` the standing height each instant's own solve found (m):
+            their spread is what the calibration removes.
+        seconds: Wall time.
+    """
+
+    subject: SubjectCalibration
+    session: Path
+    t_ref_ns: I64 = field(repr=False)
+    instants_total: int = 0
+    skipped_instants: int = 0
+    rounds: int = 1
+    frame_heights_m: F64 = field(default_factory=lambda: np.zeros(0), repr=False)
+    seconds: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready summary (what ``democap subject --json`` prints, beside the file)."""
+        h = self.frame_heights_m
+        return {
+            "session": str(self.session),
+            "instants": int(self.t_ref_ns.size),
+            "instants_total": self.instants_total,
+            "skipped_instants": self.skipped_instants,
+            "rounds": self.rounds,
+            "standing_height_m": self.subject.standing_height_m,
+            "scale": self.subject.scale,
+            "girth": self.subject.girth,
+            "frame_by_frame_height_m": {
+                "median": float(np.median(h)),
+                "p10": float(np.percentile(h, 10)),
+                "p90": float(np.percentile(h, 90)),
+            },
+            "segment_lengths_m": self.subject.segment_lengths_m,
+            "seconds": self.seconds,
+        }
+
+
+class _KeepClouds:
+    """A pipeline's predictor that keeps each cloud with the views the pipeline gives it, for
+    one solve over all of them afterwards, and answers with the network alone meanwhile."""
+
+    def __init__(self, network: DemocapPredictor) -> None:
+        self.network = network
+        self.clouds: list[F64] = []
+        self.views: list[list[Camera]] = []
+
+    def predict_many(
+        self,
+        clouds: Sequence[npt.ArrayLike],
+        *,
+        views: Sequence[Sequence[Camera]] | None = None,
+        crop_box_m: Box | None = None,
+    ) -> list[Prediction]:
+        out = self.network.predict_many(clouds)
+        self.clouds.extend(np.asarray(c, np.float64) for c in clouds)
+        self.views.extend(list(v) for v in (views or [[]] * len(clouds)))
+        return out
+
+
+def fit_subject(
+    session: str | Path,
+    calibration: Calibration | str | Path,
+    *,
+    instants: int = SUBJECT_INSTANTS,
+    rounds: int = 1,
+    predictor: DemocapPredictor | None = None,
+    crop_box_m: Box | None = DEFAULT_CROP_BOX_M,
+    merge_radius_m: float = 0.010,
+    tolerance: float = INSTANT_TOLERANCE,
+    progress: Callable[[int, int], None] | None = None,
+) -> SubjectFit:
+    """Calibrate the subject of a recording (one actor; a range-of-motion take is best): the
+    replay's pipeline on ``instants`` instants spread evenly over it, each cloud solved on its
+    own, then the subject's lengths and marker placement from those solves and every cloud
+    solved again with them, ``rounds`` times
+    (:meth:`~.infer.DemocapPredictor.predict_subject`).
+
+    Raises:
+        ValidationError: ``instants`` < 3, ``rounds`` < 1, a bad ``crop_box_m``, or a
+            predictor that does not solve.
+        ProcessingError: fewer than 3 of the chosen instants have a usable cloud; what
+            :func:`plan_replay` raises.
+        CalibrationError, RecordingError: as :func:`plan_replay`.
+    """
+    t0 = time.monotonic()
+    if isinstance(instants, bool) or int(instants) != instants or instants < 3:
+        msg = f"a subject is fitted from at least 3 instants, got {instants!r}"
+        raise ValidationError(msg)
+    if isinstance(rounds, bool) or int(rounds) != rounds or rounds < 1:
+        msg = f"rounds must be an integer >= 1, got {rounds!r}"
+        raise ValidationError(msg)
+    pred = predictor if predictor is not None else DemocapPredictor()
+    if not pred.solves:
+        msg = "a subject is fitted by the skeleton solve; give a predictor with solve=True"
+        raise ValidationError(msg)
+    _check_span_options(pred, crop_box_m, 1)
+    cal, _ = _read_calibration(calibration)
+    plan = plan_replay(session, cal, tolerance=tolerance)
+    n = len(plan.instants)
+    pick = np.unique(np.linspace(0, n - 1, min(int(instants), n)).round().astype(np.int64))
+    chosen = [plan.instants[int(i)] for i in pick]
+    keep = _KeepClouds(DemocapPredictor(pred.checkpoint, rotations=1, solve=False))
+    times: list[int] = []
+    with (
+        Recording(plan.session) as rec,
+        LivePipeline(
+            keep, _live_cameras(plan, cal), crop_box_m=crop_box_m, merge_radius_m=merge_radius_m
+        ) as pipeline,
+    ):
+        frames = _instant_frames(rec, plan.index, chosen)
+        for k, (inst, res) in enumerate(zip(chosen, pipeline.stream(frames), strict=True)):
+            if res.prediction is not None:
+                times.append(inst.t_ref_ns)
+            if progress is not None:
+                progress(k + 1, len(chosen))
+    if len(keep.clouds) < 3:
+        msg = (
+            f"{plan.session}: {len(keep.clouds)} of the {len(chosen)} chosen instants have 2 or "
+            "more marker points; a subject needs at least 3 (is the actor inside the capture "
+            "box? try more --instants)"
+        )
+        raise ProcessingError(msg)
+    fit = pred.predict_subject(
+        keep.clouds, views=keep.views, crop_box_m=crop_box_m, rounds=int(rounds)
+    )
+    heights = np.array([p.height_m for p in fit.frame_by_frame], dtype=np.float64)
+    result = SubjectFit(
+        subject=fit.calibration,
+        session=plan.session,
+        t_ref_ns=np.array(times, dtype=np.int64),
+        instants_total=n,
+        skipped_instants=len(chosen) - len(keep.clouds),
+        rounds=int(rounds),
+        frame_heights_m=heights,
+        seconds=time.monotonic() - t0,
+    )
+    _log.info(
+        "%s: subject of %.3f m from %d instants (frame by frame %.3f-%.3f m), %.1f s",
+        plan.session,
+        fit.calibration.standing_height_m,
+        len(keep.clouds),
+        float(np.percentile(heights, 10)),
+        float(np.percentile(heights, 90)),
+        result.seconds,
     )
     return result
 
@@ -1059,6 +1239,9 @@ def _metadata(result: ReplayResult) -> dict[str, str]:
         "checkpoint": result.checkpoint,
         "rotations": str(result.rotations),
         "solve": str(result.solve).lower(),
+        "subject_height_m": (
+            "" if result.subject_height_m is None else f"{result.subject_height_m:.4f}"
+        ),
         "instants_by_camera_count": ",".join(
             f"{k}:{v}" for k, v in result.camera_histogram.items()
         ),

@@ -69,7 +69,7 @@ from __future__ import annotations
 import functools
 import itertools
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -283,6 +283,82 @@ class SubjectCalibration:
     shape_z: FloatArray
     marker_offsets_m: FloatArray
     frames: int
+
+    def __post_init__(self) -> None:
+        check_shape(check_finite(self.shape_z, name="shape_z"), [_NS], name="shape_z")
+        check_shape(
+            check_finite(self.marker_offsets_m, name="marker_offsets_m"),
+            [NUM_MARKERS, 3],
+            name="marker_offsets_m",
+        )
+        if self.shape_z[0] <= 0 or self.shape_z[1] <= 0 or (self.shape_z[2:] <= -1).any():
+            msg = (
+                "a subject's scale and girth must be > 0 and every length > 0, got shape_z "
+                f"{np.round(self.shape_z, 4).tolist()}"
+            )
+            raise ValidationError(msg)
+        if isinstance(self.frames, bool) or int(self.frames) != self.frames or self.frames < 0:
+            msg = f"frames must be an integer >= 0, got {self.frames!r}"
+            raise ValidationError(msg)
+
+    @property
+    def scale(self) -> float:
+        """``h``: every length of the reference body (:data:`REFERENCE_HEIGHT_M`) times it."""
+        return float(self.shape_z[0])
+
+    @property
+    def girth(self) -> float:
+        """``g``: every radius of the reference body times ``h·g``."""
+        return float(self.shape_z[1])
+
+    @property
+    def standing_height_m(self) -> float:
+        """Standing height (m): the vertical chain of the lengths, floor to head top."""
+        return float(_standing_height_m(torch.from_numpy(self.shape_z[None].copy()))[0])
+
+    @property
+    def segment_lengths_m(self) -> dict[str, float]:
+        """Each of the body model's lengths (``BodyShape`` field -> m)."""
+        f0 = _basis().f0.numpy()[:_NL]
+        lengths = f0 * self.shape_z[0] * (1.0 + self.shape_z[2:])
+        return {k: float(v) for k, v in zip(LENGTH_FIELDS, lengths, strict=True)}
+
+    @classmethod
+    def from_lengths(
+        cls,
+        *,
+        scale: float,
+        girth: float,
+        segment_lengths_m: Mapping[str, float],
+        marker_offsets_m: npt.ArrayLike,
+        frames: int,
+    ) -> SubjectCalibration:
+        """The calibration of a body given by its lengths (m; every ``BodyShape`` length field,
+        no other), ``scale`` (``h``) and ``girth`` (``g``): the inverse of
+        :attr:`segment_lengths_m`.
+
+        Raises:
+            ValidationError: a length missing, unknown, not finite or not > 0; a scale or
+                girth not > 0; offsets not (53, 3).
+        """
+        missing = sorted(set(LENGTH_FIELDS) - set(segment_lengths_m))
+        unknown = sorted(set(segment_lengths_m) - set(LENGTH_FIELDS))
+        if missing or unknown:
+            msg = f"segment lengths: missing {missing}, unknown {unknown}"
+            raise ValidationError(msg)
+        lengths = np.array([float(segment_lengths_m[k]) for k in LENGTH_FIELDS])
+        check_finite(lengths, name="segment lengths")
+        if not (lengths > 0).all():
+            msg = f"every segment length must be > 0 m, got {lengths.round(4).tolist()}"
+            raise ValidationError(msg)
+        h = check_positive(float(scale), name="scale")
+        g = check_positive(float(girth), name="girth")
+        f0 = _basis().f0.numpy()[:_NL]
+        return cls(
+            shape_z=np.concatenate([[h, g], lengths / (f0 * h) - 1.0]),
+            marker_offsets_m=np.asarray(marker_offsets_m, np.float64),
+            frames=frames,
+        )
 
 
 @dataclass(frozen=True, slots=True)

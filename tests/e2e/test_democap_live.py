@@ -152,3 +152,14 @@ def test_democap_live_help_has_examples(capsys: pytest.CaptureFixture[str]) -> N
         main(["democap", "live", "--help"])
     assert exc.value.code == 0
     assert "examples:" in capsys.readouterr().out
+
+
+def test_democap_live_takes_a_subject_only_with_the_solve(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # refused before a calibration is read or a camera opened
+    argv = ["democap", "live", "--calib", str(tmp_path / "calib.toml"), "--mock"]
+    assert main([*argv, "--subject", str(tmp_path / "actor.json")]) == 1
+    assert "--subject is used by the skeleton solve" in capsys.readouterr().err
+    assert main([*argv, "--solve", "--subject", str(tmp_path / "actor.json")]) == 1
+    assert "democap subject" in capsys.readouterr().err  # no such file: how to make one

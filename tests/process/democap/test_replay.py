@@ -40,6 +40,7 @@ from mocaprig.process.democap.replay import (
     run_replay,
     score_replay,
 )
+from mocaprig.process.democap.subject import load_subject
 from tests.conftest import CalibratedSession
 
 LABELS = [*MARKER_NAMES, *(f"J_{j}" for j in DEMOCAP_JOINTS)]
@@ -371,3 +372,66 @@ def test_democap_run_command_prints_json_and_refuses_existing_outputs(
     assert "--overwrite" in err
     assert out.stat().st_mtime_ns == before
     assert main([*argv, "--overwrite"]) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("keep_torch_threads")
+def test_democap_subject_calibrates_the_actor_and_the_replay_solves_every_instant_as_them(
+    replayed: Replayed, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    actor = tmp_path / "actor.json"
+    argv = [
+        "democap", "subject", str(replayed.session), "--calib", str(replayed.calib),
+        "--out", str(actor), "--instants", "16", "--json",
+    ]  # fmt: skip
+    assert main(argv) == 0
+    fit = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert fit["instants"] + fit["skipped_instants"] == 16
+    assert fit["out"] == str(actor)
+    # The simulated actor's true body: measured on seed 5, 1.556 m against 1.565 m, every
+    # length within 1 cm (the head's: the top of the head carries no marker).
+    shape = replayed.truth.meta["body_shape"]
+    subject = load_subject(actor)
+    assert subject.standing_height_m == pytest.approx(fit["standing_height_m"])
+    assert abs(subject.standing_height_m - shape["height_m"]) < 0.03
+    for k in ("shank_length_m", "thigh_length_m", "upper_arm_length_m", "forearm_length_m"):
+        assert abs(subject.segment_lengths_m[k] - shape[k]) < 0.02, k
+    assert main(argv) == 1  # the file exists
+    assert "--overwrite" in capsys.readouterr().err
+
+    # Every 4th instant solved as the subject: as close to the truth as frame by frame (seed
+    # 5: 5.5 mm both; the markers 7.2 against 8.9 mm).
+    r = run_replay(
+        replayed.session,
+        replayed.calib,
+        out=tmp_path / "as_subject.mcap",
+        every=4,
+        predictor=DemocapPredictor(subject=subject),
+    )
+    assert r.subject_height_m == pytest.approx(subject.standing_height_m)
+    true_m, true_j = democap_truth_at(replayed.truth, r.t_ref_ns)
+    as_subject = score_replay(r, true_j, true_m)
+    alone = replayed.result
+    rows = np.flatnonzero(np.isin(alone.t_ref_ns, r.t_ref_ns))
+    assert len(rows) == r.instants
+    same = dataclasses.replace(
+        alone,
+        t_ref_ns=alone.t_ref_ns[rows],
+        joints_m=alone.joints_m[rows],
+        markers_m=alone.markers_m[rows],
+    )
+    frame_by_frame = score_replay(same, true_j, true_m)
+    assert as_subject.mpjpe_mm < 10.0
+    assert as_subject.mpjpe_mm < frame_by_frame.mpjpe_mm + 2.0
+
+    # The command takes the file; without the solve it has nothing to hold.
+    run = [
+        "democap", "run", str(replayed.session), "--calib", str(replayed.calib),
+        "--out", str(tmp_path / "cli.mcap"), "--every", "12", "--rotations", "1",
+        "--subject", str(actor), "--json",
+    ]  # fmt: skip
+    assert main(run) == 0
+    s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert s["subject_height_m"] == pytest.approx(subject.standing_height_m)
+    assert main([*run, "--no-solve", "--overwrite"]) == 1
+    assert "--subject is used by the skeleton solve" in capsys.readouterr().err
