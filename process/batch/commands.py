@@ -24,6 +24,8 @@ that needs them). Side files, looked up in the session's folder:
   eventcap_detections.json   EventCap's detections (ours or COCO), or
   eventcap_detections/       an OpenPose --write_json folder; required for EventCap
   eventcap_shape.json        the actor's template (BodyShape fields); else --height
+  democap_subject.json       the actor's subject file (mocaprig democap subject): DeMoCap
+                             solves every instant as that body
 Outputs: OUT/<session>/<method>/ (democap.mcap/.c3d/.csv; eventcap.mcap/.c3d/.bvh) and a
 done.json manifest. Finished methods are kept and skipped; a method is written into a hidden
 .part folder and renamed into place when all its files are done. A failed task is retried once,

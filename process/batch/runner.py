@@ -196,10 +196,11 @@ def _describe(err: BaseException) -> str:
     return text if isinstance(err, ProcessingError) else f"{type(err).__name__}: {text}"
 
 
-def _method_settings(settings: ProcessSettings, method: Method) -> dict[str, Any]:
+def _method_settings(job: _Job, settings: ProcessSettings) -> dict[str, Any]:
     """The settings that shape a method's outputs (kept in its manifest)."""
-    if method == "democap":
-        return {"democap_every": settings.democap_every}  # the spans do not change the files
+    if job.method == "democap":
+        # the spans do not change the files
+        return {"democap_every": settings.democap_every, "subject": job.session.subject}
     return {
         k: getattr(settings, k)
         for k in (
@@ -235,7 +236,7 @@ def _finished_before(job: _Job, settings: ProcessSettings) -> JobReport | None:
         made_with = json.loads(manifest.read_text(encoding="utf-8")).get("settings")
     except (OSError, ValueError, AttributeError):
         made_with = None
-    now = to_jsonable(_method_settings(settings, job.method))
+    now = to_jsonable(_method_settings(job, settings))
     details = {} if made_with == now else {"other_settings": made_with}
     return JobReport(job.session.name, job.method, "skipped", (*outputs, manifest), details=details)
 
@@ -323,7 +324,7 @@ def process_sessions(
             "files": files,
             "seconds": seconds,
             "retried": job.retried,
-            "settings": _method_settings(settings, job.method),
+            "settings": _method_settings(job, settings),
             "details": details,
         }
         (staging / MANIFEST_NAME).write_text(

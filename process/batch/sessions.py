@@ -9,6 +9,8 @@ when a file is given), named as ``mocaprig demo`` names them:
   of ``--calib`` for every method;
 * ``eventcap_calib.toml`` — the calibration with the DAVIS entry (``mocaprig calibrate board``),
   used by EventCap before ``calib.toml`` and ``--calib``;
+* ``democap_subject.json`` — the actor's subject file (``mocaprig democap subject``): DeMoCap
+  solves every instant as that body; without it, every instant on its own;
 * ``eventcap_detections.json`` (our JSON or a COCO keypoint JSON) or ``eventcap_detections/``
   (an OpenPose ``--write_json`` folder) — EventCap's detections, one per take, required;
 * ``eventcap_shape.json`` — the actor's template (BodyShape fields, or a simulated
@@ -34,6 +36,7 @@ __all__ = [
     "DETECTIONS_NAME",
     "EVENTCAP_CALIB_NAME",
     "SHAPE_NAME",
+    "SUBJECT_NAME",
     "SessionInputs",
     "find_sessions",
     "is_url",
@@ -46,6 +49,7 @@ CALIB_NAME: Final = "calib.toml"
 EVENTCAP_CALIB_NAME: Final = "eventcap_calib.toml"
 DETECTIONS_NAME: Final = "eventcap_detections"
 SHAPE_NAME: Final = "eventcap_shape.json"
+SUBJECT_NAME: Final = "democap_subject.json"
 _RECORDING_NAME: Final = "session.mcap"
 
 
@@ -120,6 +124,7 @@ class SessionInputs:
             else :attr:`calibration`).
         detections: EventCap's detections, or None when the session has none.
         shape: EventCap's template file, or None (``--height`` then).
+        subject: DeMoCap's subject file, or None (every instant on its own).
     """
 
     name: str
@@ -129,6 +134,7 @@ class SessionInputs:
     eventcap_calibration: str | None
     detections: str | None
     shape: str | None
+    subject: str | None = None
 
 
 def _find_one(location: str, calib: str | None) -> SessionInputs:
@@ -178,6 +184,7 @@ def _find_one(location: str, calib: str | None) -> SessionInputs:
         eventcap_calibration=ec_calib if ec_calib is not None else calibration,
         detections=detections,
         shape=found(SHAPE_NAME),
+        subject=found(SUBJECT_NAME),
     )
 
 

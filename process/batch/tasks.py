@@ -37,7 +37,9 @@ from mocaprig.process.batch.sessions import SessionInputs, local_path
 # Imported with this module, not in the task: a Dask worker unpickles the next task's
 # ReplayPlan on its event-loop thread while a task runs on another, and two threads importing
 # the democap package at once can see it half initialised.
+from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.replay import ReplayPlan, ReplaySpan, plan_replay, replay_span
+from mocaprig.process.democap.subject import load_subject
 
 __all__ = [
     "DEFAULT_DEMOCAP_SPAN",
@@ -140,10 +142,18 @@ def democap_plan_task(session: SessionInputs, settings: ProcessSettings) -> Repl
 
 def democap_span_task(session: SessionInputs, plan: ReplayPlan) -> ReplaySpan:
     """DeMoCap on every instant of ``plan`` (a span of the session's plan,
-    :meth:`~mocaprig.process.democap.replay.ReplayPlan.span`) with the committed network."""
+    :meth:`~mocaprig.process.democap.replay.ReplayPlan.span`) with the committed network,
+    every instant solved as the session's subject where it has a subject file.
+
+    Raises:
+        CalibrationError: the subject file is unreadable or not a subject file.
+    """
     # The recording as this worker sees it (an fsspec URL is fetched where it runs).
     here = replace(plan, session=Path(local_path(session.recording)))
-    return replay_span(here, democap_calibration(session))
+    predictor = None
+    if session.subject is not None:
+        predictor = DemocapPredictor(subject=load_subject(local_path(session.subject)))
+    return replay_span(here, democap_calibration(session), predictor=predictor)
 
 
 def eventcap_inputs(session: SessionInputs, settings: ProcessSettings) -> EventcapInputs:

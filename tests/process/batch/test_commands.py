@@ -84,5 +84,6 @@ def test_help_names_the_side_files_and_engines(capsys: pytest.CaptureFixture[str
     with pytest.raises(SystemExit):
         _parse(["--help"])
     text = capsys.readouterr().out
-    for word in ("eventcap_detections.json", "eventcap_shape.json", "calib.toml", "tcp://"):
+    side = ("eventcap_detections.json", "eventcap_shape.json", "calib.toml", "democap_subject.json")
+    for word in (*side, "tcp://"):
         assert word in text

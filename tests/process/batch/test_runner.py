@@ -6,6 +6,7 @@ the real pipelines run in tests/e2e/test_process_batch.py.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
 from unittest.mock import patch
@@ -113,7 +114,17 @@ def test_a_kept_output_made_with_other_settings_is_flagged(tmp_path: Path) -> No
     every_5 = ProcessSettings(methods=("democap",), democap_every=5)
     report = process_sessions(sessions, out=out, settings=every_5, engine=InProcessEngine())
     assert report.jobs[0].status == "skipped"
-    assert report.jobs[0].details == {"other_settings": {"democap_every": 3}}
+    assert report.jobs[0].details == {"other_settings": {"democap_every": 3, "subject": None}}
+
+
+def test_a_kept_output_made_without_the_session_s_subject_file_is_flagged(tmp_path: Path) -> None:
+    sessions = _sessions(tmp_path, {"a": "ok"})
+    out = tmp_path / "out"
+    process_sessions(sessions, out=out, settings=DEMOCAP, engine=InProcessEngine())
+    as_actor = [dataclasses.replace(s, subject=f"{s.folder}/actor.json") for s in sessions]
+    report = process_sessions(as_actor, out=out, settings=DEMOCAP, engine=InProcessEngine())
+    assert report.jobs[0].status == "skipped"
+    assert report.jobs[0].details == {"other_settings": {"democap_every": 3, "subject": None}}
 
 
 def test_a_task_that_raises_is_retried_once(tmp_path: Path) -> None:

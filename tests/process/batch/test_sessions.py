@@ -29,6 +29,13 @@ def test_side_files_are_found_in_the_session_folder(tmp_path: Path) -> None:
     assert s.eventcap_calibration == s.calibration
     assert s.detections == str(d / "eventcap_detections.json")
     assert s.shape == str(d / "eventcap_shape.json")
+    assert s.subject is None
+
+
+def test_a_subject_file_in_the_session_folder_is_democap_s(tmp_path: Path) -> None:
+    d = _session(tmp_path / "take1", "calib.toml", "democap_subject.json")
+    (s,) = find_sessions([d])
+    assert s.subject == str(d / "democap_subject.json")
 
 
 def test_a_session_calibration_beats_calib_and_eventcap_has_its_own(tmp_path: Path) -> None:
