@@ -192,6 +192,8 @@ examples:
       compare with the truth, write demo-out/summary.png and demo-out/report.json
   mocaprig demo --scenario karate --seed 3 --seconds 6 --out karate-demo --json
       the same on fast strikes; one JSON object with every figure
+  mocaprig demo --out quick-demo --real-frames 3
+      the real-motion figures on 3 frames a clip instead of 8: a minute or two quicker
 
 The demo runs the whole toolkit as far as it exists: simulate, record, check the recording,
 Vicon I/O, calibration, DeMoCap on held-out simulated takes, the DeMoCap replay of the recording
@@ -244,6 +246,14 @@ def register_demo(subparsers: argparse._SubParsersAction[argparse.ArgumentParser
             "the motion corpus for the unseen-real DeMoCap figure (default: "
             "../shared/data/motion/corpus beside the clone, when there; else skipped)"
         ),
+    )
+    p.add_argument(
+        "--real-frames",
+        type=int,
+        default=8,
+        metavar="N",
+        help="frames per test clip of the real-motion DeMoCap figures (11 clips; default: "
+        "%(default)s; fewer for a quicker demo: that stage is about half its time)",
     )
     add_json_flag(p)
     p.set_defaults(func=_demo)
@@ -307,6 +317,7 @@ def _demo(args: argparse.Namespace) -> int:
         cameras=args.cameras,
         davis_dvs=args.davis_dvs,
         corpus_dir=args.corpus,
+        real_frames=args.real_frames,
     )
     failed = any(state.startswith("failed") for state in report.stages.values())
     if args.json:

@@ -46,7 +46,7 @@ from mocaprig.acquire.device_id import DeviceId
 from mocaprig.calib.vicon import MarkerTrajectories, read_c3d, read_nexus_csv
 from mocaprig.drivers_mock.session import SimulationResult, simulate_session
 from mocaprig.drivers_mock.truth import Truth, read_truth
-from mocaprig.errors import MocaprigError, ProcessingError, RecordingError
+from mocaprig.errors import MocaprigError, ProcessingError, RecordingError, ValidationError
 from mocaprig.json_values import to_jsonable
 
 if TYPE_CHECKING:
@@ -145,7 +145,11 @@ def _staged(
 
 
 def _unseen_real_figures(
-    corpus_dir: Path, seed: int, progress: Callable[[str], Progress | None] | None = None
+    corpus_dir: Path,
+    seed: int,
+    progress: Callable[[str], Progress | None] | None = None,
+    *,
+    frames_per_clip: int = UNSEEN_REAL_FRAMES,
 ) -> dict[str, Any]:
     """The headline protocol on a small budget: the committed checkpoint on the corpus's test
     split (real motion of performers it never saw), 4 cameras, its default inference
@@ -164,7 +168,7 @@ def _unseen_real_figures(
         predictor,
         corpus_dir,
         seed=seed,
-        frames_per_clip=UNSEEN_REAL_FRAMES,
+        frames_per_clip=frames_per_clip,
         progress=report,
     )
     # one run gives both off-model figures: the calibration's first solve is frame by frame
@@ -172,7 +176,7 @@ def _unseen_real_figures(
         DemocapPredictor(predictor.checkpoint, subject_calibration=1),
         corpus_dir,
         seed=seed,
-        frames_per_clip=UNSEEN_REAL_FRAMES,
+        frames_per_clip=frames_per_clip,
         progress=report,
     )
     if res.report is None or off.report is None:
@@ -939,6 +943,7 @@ def run_demo(
     cameras: int = 4,
     davis_dvs: bool = False,
     corpus_dir: str | Path | None = None,
+    real_frames: int = UNSEEN_REAL_FRAMES,
 ) -> DemoReport:
     """Run the main job on the simulated rig and write ``report.json`` and ``summary.png``.
 
@@ -955,10 +960,16 @@ def run_demo(
         davis_dvs: Record DAVIS DVS events too (~20 s CPU per simulated second).
         corpus_dir: The motion corpus for the ``unseen-real`` figure (None: the shared data
             beside the repository, when there; without it the stage is skipped, saying so).
+        real_frames: Frames per test clip of the real-motion figures (``unseen-real`` and
+            ``off-model``, 11 clips each; that stage takes about half the demo's time at 8).
 
     Raises:
         RecordingError: the folder is not empty (without ``overwrite``) or a file disagrees.
+        ValidationError: ``real_frames`` < 1.
     """
+    if isinstance(real_frames, bool) or int(real_frames) != real_frames or real_frames < 1:
+        msg = f"real_frames must be an integer >= 1, got {real_frames!r}"
+        raise ValidationError(msg)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         msg = f"demo output {out} exists and is not a folder; choose another --out"
@@ -1067,7 +1078,9 @@ def run_demo(
         )
     else:
         try:
-            figures["democap_unseen_real"] = _unseen_real_figures(corpus, seed, stage)
+            figures["democap_unseen_real"] = _unseen_real_figures(
+                corpus, seed, stage, frames_per_clip=real_frames
+            )
             stages["democap_unseen_real"] = (
                 "done (unseen-real: the corpus test split, real motion of unseen performers)"
             )

@@ -98,6 +98,8 @@ class LiveSummary:
     warm_up_s: float = 0.0
     #: whether the network ran compiled (None: a predictor that does not say)
     compiled: bool | None = None
+    #: standing height (m) of the subject every instant was solved as (None: none)
+    subject_height_m: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -114,6 +116,7 @@ class LiveSummary:
             "skipped": self.skipped,
             "warm_up_s": self.warm_up_s,
             "compiled": self.compiled,
+            "subject_height_m": self.subject_height_m,
         }
 
 
@@ -304,7 +307,13 @@ def run_live(
         skipped=skipped,
         warm_up_s=warm_up_s,
         compiled=getattr(pred, "compiled", None),
+        subject_height_m=_subject_height_m(pred),
     )
+
+
+def _subject_height_m(predictor: CloudPredictor) -> float | None:
+    subject = getattr(predictor, "subject", None)
+    return None if subject is None else float(subject.standing_height_m)
 
 
 def _stop_all(cameras: Sequence[DepthCamera]) -> None:
@@ -326,4 +335,5 @@ def _metadata(
         "checkpoint": "" if ck is None else f"{ck.config.name} ({ck.epoch} epochs)",
         "rotations": str(getattr(predictor, "rotations", "")),
         "compiled": str(getattr(predictor, "compiled", "")),
+        "subject_height_m": "" if (h := _subject_height_m(predictor)) is None else f"{h:.4f}",
     }

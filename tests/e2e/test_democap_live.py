@@ -21,10 +21,13 @@ from mocaprig.acquire.camera_backends import open_cameras
 from mocaprig.acquire.recording import Recording, info
 from mocaprig.cli import main
 from mocaprig.drivers_mock.truth import democap_truth_at
+from mocaprig.process.body import MARKER_NAMES
 from mocaprig.process.democap.infer import DemocapPredictor
 from mocaprig.process.democap.live import LiveResult
 from mocaprig.process.democap.live_capture import LiveInstant, run_live
 from mocaprig.process.democap.replay import JOINTS_TOPIC, MARKERS_TOPIC, run_replay
+from mocaprig.process.democap.solve import SHAPE_DIM, SubjectCalibration
+from mocaprig.process.democap.subject import save_subject
 from tests.conftest import CalibratedSession
 
 
@@ -110,6 +113,34 @@ def test_democap_live_command_reports_json(
     assert isinstance(out["compiled"], bool)
     assert out["warm_up_s"] > 0.0
     assert out["skipped"] == 0
+    assert out["subject_height_m"] is None  # every instant on its own
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("one_thread")
+def test_democap_live_with_the_solve_solves_as_a_subject_file(
+    calibrated_session: CalibratedSession, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    subject = SubjectCalibration(
+        shape_z=np.r_[0.92, 1.0, np.zeros(SHAPE_DIM - 2)],
+        marker_offsets_m=np.zeros((len(MARKER_NAMES), 3)),
+        frames=3,
+    )
+    actor = save_subject(subject, tmp_path / "actor.json")
+    out = tmp_path / "live.mcap"
+    code = main(
+        ["democap", "live", "--mock", "--seed", str(calibrated_session.seed), "--calib",
+         str(calibrated_session.calib), "--seconds", "0.2", "--world-seconds",
+         str(calibrated_session.seconds), "--rotations", "1", "--no-compile", "--solve",
+         "--subject", str(actor), "--out", str(out), "--json"]
+    )  # fmt: skip
+    assert code == 0
+    summary: dict[str, Any] = json.loads(capsys.readouterr().out)
+    assert summary["predicted"] >= 1
+    assert summary["subject_height_m"] == pytest.approx(subject.standing_height_m)
+    with Recording(out) as rec:
+        written = float(rec.metadata()["democap_live"]["subject_height_m"])
+    assert written == pytest.approx(subject.standing_height_m, abs=1e-4)
 
 
 class _SlowNetwork:
