@@ -163,6 +163,8 @@ in each segment's frame) is then given to `democap run --subject` or `democap li
 examples:
   mocaprig democap subject rom.mcap --calib calib.toml --out actor.json
   mocaprig democap subject rom.mcap --calib calib.toml --out actor.json --instants 80 --json
+  mocaprig democap subject take.mcap --calib calib.toml --out actor.json --end 0.8
+      from the take's first 0.8 s (a T-pose at the start)
   mocaprig democap run take.mcap --calib calib.toml --out take_results.mcap --subject actor.json
 """
 
@@ -375,6 +377,21 @@ def register_democap(subparsers: argparse._SubParsersAction[argparse.ArgumentPar
     )
     sj.add_argument(
         "--rounds", type=int, default=1, help="calibration rounds (default: %(default)s)"
+    )
+    sj.add_argument(
+        "--start",
+        type=float,
+        default=None,
+        metavar="S",
+        help="use the recording from S seconds after its first instant (its range-of-motion "
+        "or static part; default: from the start)",
+    )
+    sj.add_argument(
+        "--end",
+        type=float,
+        default=None,
+        metavar="S",
+        help="... up to S seconds after its first instant (default: to the end)",
     )
     sj.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     sj.add_argument("--ckpt", default=None, help="checkpoint (default: the committed lite one)")
@@ -1093,6 +1110,8 @@ def democap_subject(args: argparse.Namespace) -> int:
         args.calib,
         instants=args.instants,
         rounds=args.rounds,
+        start_s=args.start,
+        end_s=args.end,
         predictor=DemocapPredictor(None if args.ckpt is None else Path(args.ckpt)),
         crop_box_m=None if args.no_crop else DEFAULT_CROP_BOX_M,
         progress=bar,

@@ -892,6 +892,8 @@ def fit_subject(
     *,
     instants: int = SUBJECT_INSTANTS,
     rounds: int = 1,
+    start_s: float | None = None,
+    end_s: float | None = None,
     predictor: DemocapPredictor | None = None,
     crop_box_m: Box | None = DEFAULT_CROP_BOX_M,
     merge_radius_m: float = 0.010,
@@ -899,16 +901,17 @@ def fit_subject(
     progress: Callable[[int, int], None] | None = None,
 ) -> SubjectFit:
     """Calibrate the subject of a recording (one actor; a range-of-motion take is best): the
-    replay's pipeline on ``instants`` instants spread evenly over it, each cloud solved on its
-    own, then the subject's lengths and marker placement from those solves and every cloud
-    solved again with them, ``rounds`` times
-    (:meth:`~.infer.DemocapPredictor.predict_subject`).
+    replay's pipeline on ``instants`` instants spread evenly over it (over its part from
+    ``start_s`` to ``end_s``, seconds after its first instant, when given: the take's
+    range-of-motion or static section), each cloud solved on its own, then the subject's
+    lengths and marker placement from those solves and every cloud solved again with them,
+    ``rounds`` times (:meth:`~.infer.DemocapPredictor.predict_subject`).
 
     Raises:
-        ValidationError: ``instants`` < 3, ``rounds`` < 1, a bad ``crop_box_m``, or a
-            predictor that does not solve.
-        ProcessingError: fewer than 3 of the chosen instants have a usable cloud; what
-            :func:`plan_replay` raises.
+        ValidationError: ``instants`` < 3, ``rounds`` < 1, ``end_s`` not after ``start_s``,
+            a bad ``crop_box_m``, or a predictor that does not solve.
+        ProcessingError: fewer than 3 of the chosen instants have a usable cloud, or the
+            part holds fewer than 3 instants; what :func:`plan_replay` raises.
         CalibrationError, RecordingError: as :func:`plan_replay`.
     """
     t0 = time.monotonic()
@@ -918,6 +921,11 @@ def fit_subject(
     if isinstance(rounds, bool) or int(rounds) != rounds or rounds < 1:
         msg = f"rounds must be an integer >= 1, got {rounds!r}"
         raise ValidationError(msg)
+    lo_s = 0.0 if start_s is None else float(start_s)
+    hi_s = np.inf if end_s is None else float(end_s)
+    if not hi_s > lo_s:
+        msg = f"end_s ({end_s}) must be after start_s ({start_s})"
+        raise ValidationError(msg)
     pred = predictor if predictor is not None else DemocapPredictor()
     if not pred.solves:
         msg = "a subject is fitted by the skeleton solve; give a predictor with solve=True"
@@ -926,8 +934,17 @@ def fit_subject(
     cal, _ = _read_calibration(calibration)
     plan = plan_replay(session, cal, tolerance=tolerance)
     n = len(plan.instants)
-    pick = np.unique(np.linspace(0, n - 1, min(int(instants), n)).round().astype(np.int64))
-    chosen = [plan.instants[int(i)] for i in pick]
+    t_ns = np.array([i.t_ref_ns for i in plan.instants], dtype=np.int64)
+    t_s = (t_ns - (t_ns[0] if n else 0)) / 1e9
+    part = np.flatnonzero((t_s >= lo_s) & (t_s <= hi_s))
+    if len(part) < 3:
+        msg = (
+            f"{plan.session}: {len(part)} instants between {lo_s:g} and {hi_s:g} s of its "
+            f"{t_s[-1] if n else 0:.2f} s; a subject needs at least 3"
+        )
+        raise ProcessingError(msg)
+    at = np.linspace(0, len(part) - 1, min(int(instants), len(part))).round().astype(np.int64)
+    chosen = [plan.instants[int(i)] for i in part[np.unique(at)]]
     keep = _KeepClouds(DemocapPredictor(pred.checkpoint, rotations=1, solve=False))
     times: list[int] = []
     with (

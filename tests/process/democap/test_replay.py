@@ -32,6 +32,7 @@ from mocaprig.process.democap.replay import (
     MARKERS_TOPIC,
     METADATA_NAME,
     ReplayResult,
+    fit_subject,
     group_instants,
     join_spans,
     output_paths,
@@ -435,3 +436,19 @@ def test_democap_subject_calibrates_the_actor_and_the_replay_solves_every_instan
     assert s["subject_height_m"] == pytest.approx(subject.standing_height_m)
     assert main([*run, "--no-solve", "--overwrite"]) == 1
     assert "--subject is used by the skeleton solve" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_subject_is_fitted_from_the_part_of_the_recording_asked_for(
+    replayed: Replayed,
+) -> None:
+    with pytest.raises(ValidationError, match="end_s"):
+        fit_subject(replayed.session, replayed.calib, start_s=2.0, end_s=1.0)
+    with pytest.raises(ProcessingError, match=r"instants between 9 and inf s"):
+        fit_subject(replayed.session, replayed.calib, start_s=9.0)
+    first = plan_replay(replayed.session, replayed.calib).instants[0].t_ref_ns
+    fit = fit_subject(replayed.session, replayed.calib, instants=4, start_s=1.0, end_s=1.5)
+    assert fit.t_ref_ns.size == 4
+    after_s = (fit.t_ref_ns - first) / 1e9
+    assert after_s.min() >= 1.0
+    assert after_s.max() <= 1.5
