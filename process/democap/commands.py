@@ -604,6 +604,15 @@ def _add_inference_options(parser: argparse.ArgumentParser) -> None:
     _add_resolve_option(parser)
 
 
+def _check_threads(args: argparse.Namespace) -> None:
+    """``--threads`` is at least 1."""
+    if args.threads < 1:
+        from mocaprig.errors import ValidationError
+
+        msg = f"--threads must be >= 1, got {args.threads}"
+        raise ValidationError(msg)
+
+
 def _add_subject_option(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument(
         "--subject",
@@ -862,9 +871,7 @@ def democap_eval(args: argparse.Namespace) -> int:
     if special and args.protocol != "in-distribution":
         msg = "--motion and --freestyle replace --protocol; pass one of them"
         raise ValidationError(msg)
-    if args.threads < 1:
-        msg = f"--threads must be >= 1, got {args.threads}"
-        raise ValidationError(msg)
+    _check_threads(args)
     import torch
 
     torch.set_num_threads(args.threads)
@@ -1040,11 +1047,7 @@ def democap_run(args: argparse.Namespace) -> int:
     from mocaprig.process.democap.infer import DemocapPredictor
     from mocaprig.process.democap.replay import DEFAULT_CROP_BOX_M, run_replay
 
-    if args.threads < 1:
-        from mocaprig.errors import ValidationError
-
-        msg = f"--threads must be >= 1, got {args.threads}"
-        raise ValidationError(msg)
+    _check_threads(args)
     subject = _subject(args, solves=not args.no_solve)
     torch.set_num_threads(args.threads)
     bar = ProgressBar("democap run", unit="instants")
@@ -1088,21 +1091,12 @@ def democap_subject(args: argparse.Namespace) -> int:
     """Handler of ``mocaprig democap subject``; returns 0."""
     import torch
 
-    from mocaprig.errors import CalibrationError, ValidationError
     from mocaprig.process.democap.infer import DemocapPredictor
     from mocaprig.process.democap.replay import DEFAULT_CROP_BOX_M, fit_subject
-    from mocaprig.process.democap.subject import save_subject
+    from mocaprig.process.democap.subject import check_subject_path, save_subject
 
-    if args.threads < 1:
-        msg = f"--threads must be >= 1, got {args.threads}"
-        raise ValidationError(msg)
-    out = Path(args.out)
-    if out.suffix != ".json":
-        msg = f"{out}: a subject file is .json"
-        raise CalibrationError(msg)
-    if out.exists() and not args.overwrite:
-        msg = f"subject file {out} exists; pass --overwrite to replace it"
-        raise CalibrationError(msg)
+    _check_threads(args)
+    out = check_subject_path(args.out, overwrite=args.overwrite)
     torch.set_num_threads(args.threads)
     bar = ProgressBar("democap subject", unit="instants")
     fit = fit_subject(
@@ -1176,9 +1170,7 @@ def democap_live(args: argparse.Namespace) -> int:
     from mocaprig.process.democap.infer import DemocapPredictor
     from mocaprig.process.democap.live_capture import run_live
 
-    if args.threads < 1:
-        msg = f"--threads must be >= 1, got {args.threads}"
-        raise ValidationError(msg)
+    _check_threads(args)
     subject = _subject(args, solves=args.solve)
     calibration = read_calibration(args.calib)
     torch.set_num_threads(args.threads)

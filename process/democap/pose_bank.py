@@ -30,12 +30,13 @@ import torch
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.transform import Rotation
 
-from mocaprig.errors import ProcessingError, RecordingError, ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import BvhClip, retarget_bvh
 from mocaprig.process.body.kinematics import democap_joints, forward_kinematics
 from mocaprig.process.body.markers import MarkerSet
 from mocaprig.process.body.shape import BodyShape
 from mocaprig.process.body.skeleton import POSE_DIM
+from mocaprig.process.democap.artifact import load_artifact, save_artifact
 from mocaprig.process.democap.solve import REFERENCE_HEIGHT_M
 from mocaprig.validation import check_finite, check_positive, check_shape
 
@@ -213,22 +214,14 @@ def save_pose_bank(bank: PoseBank, path: Path, *, overwrite: bool = False) -> Pa
     Raises:
         RecordingError: ``path`` exists and ``overwrite`` is False, or cannot be written.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        msg = f"pose bank {path} exists; pass overwrite=True (--overwrite) to replace it"
-        raise RecordingError(msg)
-    try:
-        with path.open("wb") as f:
-            np.savez_compressed(
-                f,
-                format_version=np.array(_FORMAT_VERSION),
-                poses=bank.poses.astype(np.float32),
-                source=np.array(bank.source, dtype=str),
-            )
-    except OSError as exc:
-        msg = f"pose bank {path} cannot be written ({exc})"
-        raise RecordingError(msg) from exc
-    return path
+    return save_artifact(
+        path,
+        "pose bank",
+        {"poses": bank.poses.astype(np.float32)},
+        source=bank.source,
+        version=_FORMAT_VERSION,
+        overwrite=overwrite,
+    )
 
 
 def load_pose_bank(path: Path | None = None) -> PoseBank:
@@ -238,19 +231,14 @@ def load_pose_bank(path: Path | None = None) -> PoseBank:
         ProcessingError: the file is missing, not a bank, or of another format version.
     """
     path = DEFAULT_POSE_BANK if path is None else Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            version = int(z["format_version"])
-            poses = np.asarray(z["poses"], np.float64)
-            source = tuple(str(s) for s in z["source"])
-    except (OSError, KeyError, ValueError) as exc:
-        msg = (
-            f"pose bank {path} cannot be read ({exc}); rebuild it with `mocaprig democap pose-bank`"
-        )
-        raise ProcessingError(msg) from exc
-    if version != _FORMAT_VERSION:
-        msg = f"pose bank {path}: format_version {version}, this code reads {_FORMAT_VERSION}"
-        raise ProcessingError(msg)
+    arrays, source = load_artifact(
+        path,
+        "pose bank",
+        ("poses",),
+        version=_FORMAT_VERSION,
+        rebuild="mocaprig democap pose-bank",
+    )
+    poses = arrays["poses"]
     try:
         return PoseBank(poses=poses, source=source)
     except ValidationError as exc:

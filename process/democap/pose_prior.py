@@ -26,9 +26,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.cluster.vq import kmeans2
 
-from mocaprig.errors import ProcessingError, RecordingError, ValidationError
+from mocaprig.errors import ProcessingError, ValidationError
 from mocaprig.process.body import BvhClip
 from mocaprig.process.body.skeleton import NUM_DOF, ROOT_DIM
+from mocaprig.process.democap.artifact import load_artifact, save_artifact
 from mocaprig.process.democap.pose_bank import reference_poses
 from mocaprig.validation import check_finite, check_positive, check_shape
 
@@ -163,24 +164,14 @@ def save_pose_prior(prior: PosePrior, path: Path, *, overwrite: bool = False) ->
     Raises:
         RecordingError: ``path`` exists and ``overwrite`` is False, or cannot be written.
     """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        msg = f"pose prior {path} exists; pass overwrite=True (--overwrite) to replace it"
-        raise RecordingError(msg)
-    try:
-        with path.open("wb") as f:
-            np.savez_compressed(
-                f,
-                format_version=np.array(_FORMAT_VERSION),
-                means=prior.means,
-                precisions=prior.precisions,
-                costs=prior.costs,
-                source=np.array(prior.source, dtype=str),
-            )
-    except OSError as exc:
-        msg = f"pose prior {path} cannot be written ({exc})"
-        raise RecordingError(msg) from exc
-    return path
+    return save_artifact(
+        path,
+        "pose prior",
+        {"means": prior.means, "precisions": prior.precisions, "costs": prior.costs},
+        source=prior.source,
+        version=_FORMAT_VERSION,
+        overwrite=overwrite,
+    )
 
 
 def load_pose_prior(path: Path | None = None) -> PosePrior:
@@ -190,20 +181,13 @@ def load_pose_prior(path: Path | None = None) -> PosePrior:
         ProcessingError: the file is missing, not a prior, or of another format version.
     """
     path = DEFAULT_POSE_PRIOR if path is None else Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            version = int(z["format_version"])
-            fields = {k: np.asarray(z[k], np.float64) for k in ("means", "precisions", "costs")}
-            source = tuple(str(s) for s in z["source"])
-    except (OSError, KeyError, ValueError) as exc:
-        msg = (
-            f"pose prior {path} cannot be read ({exc}); rebuild it with "
-            "`mocaprig democap pose-prior`"
-        )
-        raise ProcessingError(msg) from exc
-    if version != _FORMAT_VERSION:
-        msg = f"pose prior {path}: format_version {version}, this code reads {_FORMAT_VERSION}"
-        raise ProcessingError(msg)
+    fields, source = load_artifact(
+        path,
+        "pose prior",
+        ("means", "precisions", "costs"),
+        version=_FORMAT_VERSION,
+        rebuild="mocaprig democap pose-prior",
+    )
     try:
         return PosePrior(**fields, source=source)
     except ValidationError as exc:

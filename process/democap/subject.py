@@ -38,7 +38,14 @@ from mocaprig.errors import CalibrationError, ValidationError
 from mocaprig.process.body import MARKER_NAMES
 from mocaprig.process.democap.solve import SubjectCalibration
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "load_subject", "save_subject", "subject_document"]
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "check_subject_path",
+    "load_subject",
+    "save_subject",
+    "subject_document",
+]
 
 #: The ``format`` field of a subject file.
 FORMAT: Final = "mocaprig-democap-subject"
@@ -66,6 +73,22 @@ def subject_document(subject: SubjectCalibration, *, source: str = "") -> dict[s
     }
 
 
+def check_subject_path(path: str | Path, *, overwrite: bool) -> Path:
+    """``path`` as a subject file may be written there (before the work that makes it).
+
+    Raises:
+        CalibrationError: not ``.json``, or it exists and ``overwrite`` is False.
+    """
+    p = Path(path)
+    if p.suffix != ".json":
+        msg = f"{p}: a subject file is .json"
+        raise CalibrationError(msg)
+    if p.exists() and not overwrite:
+        msg = f"subject file {p} exists; pass overwrite=True (--overwrite) to replace it"
+        raise CalibrationError(msg)
+    return p
+
+
 def save_subject(
     subject: SubjectCalibration, path: str | Path, *, source: str = "", overwrite: bool = False
 ) -> Path:
@@ -78,13 +101,7 @@ def save_subject(
         CalibrationError: not ``.json``, the file exists and ``overwrite`` is False, or it
             cannot be written.
     """
-    p = Path(path)
-    if p.suffix != ".json":
-        msg = f"{p}: a subject file is .json"
-        raise CalibrationError(msg)
-    if p.exists() and not overwrite:
-        msg = f"subject file {p} exists; pass overwrite=True (--overwrite) to replace it"
-        raise CalibrationError(msg)
+    p = check_subject_path(path, overwrite=overwrite)
     tmp = p.with_name(p.name + ".part")
     try:
         tmp.write_text(json.dumps(subject_document(subject, source=source), indent=2) + "\n")
